@@ -1,0 +1,124 @@
+"""Input checks shared by every public op.
+
+All checks raise :class:`ValueError` with a message that names the argument, the expected
+shape and the received one, e.g.::
+
+    points: expected shape (B, N, 3), got (2, 5, 4)
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = ["check_finite", "check_floating", "check_same_dims", "check_shape", "check_tensor"]
+
+
+def _format_shape(shape: Sequence[str | int]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ")"
+
+
+def check_tensor(x: object, name: str) -> None:
+    """Raise ``ValueError`` unless ``x`` is a :class:`torch.Tensor`."""
+    if not isinstance(x, Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+
+
+def check_shape(
+    x: object,
+    shape: Sequence[str | int],
+    name: str,
+    dims: dict[str, int] | None = None,
+) -> dict[str, int]:
+    """Check the shape of ``x`` against a pattern of named and fixed dimensions.
+
+    Args:
+        x: the tensor to check.
+        shape: the expected shape. Integers must match exactly, strings name a dimension
+            (the same name must have the same size everywhere it appears) and a leading
+            ``"*"`` matches any number of leading dimensions.
+        name: the argument name used in error messages.
+        dims: sizes bound by earlier checks (e.g. ``{"B": 4}``); new bindings are added to it
+            in place, so that one dictionary checks consistency across several arguments.
+
+    Returns:
+        The dictionary of bound dimension sizes.
+
+    Raises:
+        ValueError: if ``x`` is not a tensor or its shape does not match.
+
+    Example:
+        >>> dims = check_shape(torch.zeros(2, 5, 3), ["B", "N", 3], "points")
+        >>> dims
+        {'B': 2, 'N': 5}
+        >>> check_shape(torch.zeros(3, 4), ["B", 4], "other", dims)
+        Traceback (most recent call last):
+        ...
+        ValueError: other: expected shape (B, 4) with B=2 (as bound by an earlier argument), got (3, 4)
+    """
+    check_tensor(x, name)
+    bound = {} if dims is None else dims
+    pattern = list(shape)
+    got = tuple(x.shape)
+    got_str = _format_shape(got)
+    if pattern and pattern[0] == "*":
+        tail = pattern[1:]
+        if len(got) < len(tail):
+            raise ValueError(f"{name}: expected shape {_format_shape(pattern)}, got {got_str}")
+        got_tail = got[len(got) - len(tail):]
+    else:
+        tail = pattern
+        if len(got) != len(tail):
+            raise ValueError(
+                f"{name}: expected shape {_format_shape(pattern)} ({len(tail)} dimensions), "
+                f"got {got_str} ({len(got)} dimensions)"
+            )
+        got_tail = got
+    new: dict[str, int] = {}
+    for want, size in zip(tail, got_tail):
+        if isinstance(want, int):
+            if size != want:
+                raise ValueError(f"{name}: expected shape {_format_shape(pattern)}, got {got_str}")
+        elif want in bound:
+            if size != bound[want]:
+                raise ValueError(
+                    f"{name}: expected shape {_format_shape(pattern)} with {want}={bound[want]} "
+                    f"(as bound by an earlier argument), got {got_str}"
+                )
+        elif want in new:
+            if size != new[want]:
+                raise ValueError(
+                    f"{name}: expected shape {_format_shape(pattern)} with equal {want} dimensions, "
+                    f"got {got_str}"
+                )
+        else:
+            new[want] = size
+    bound.update(new)
+    return bound
+
+
+def check_same_dims(dims: dict[str, int], name: str, **expected: int) -> None:
+    """Check that named dimensions bound by :func:`check_shape` have given sizes."""
+    for key, value in expected.items():
+        if dims.get(key) != value:
+            raise ValueError(f"{name}: expected {key}={value}, got {key}={dims.get(key)}")
+
+
+def check_floating(x: Tensor, name: str) -> None:
+    """Raise ``ValueError`` unless ``x`` has a floating-point dtype."""
+    if not torch.is_floating_point(x):
+        raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+
+
+def check_finite(x: Tensor, name: str) -> None:
+    """Raise ``ValueError`` if ``x`` holds NaN or infinite values.
+
+    The check reads tensor values, so it is skipped while ``torch.compile`` traces.
+    """
+    if torch.compiler.is_compiling():
+        return
+    if not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).sum())
+        raise ValueError(f"{name}: expected finite values, got {bad} NaN or infinite entries")

@@ -1,0 +1,101 @@
+r"""Pinhole projection with the paper's parametrisation ``a = (1/z) K R (p + t)``."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_floating, check_shape
+
+__all__ = ["project_points", "transform_points"]
+
+
+def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor) -> dict[str, int]:
+    dims = check_shape(points, ["B", "N", 3], "points")
+    check_shape(rotation, ["B", 3, 3], "rotation", dims)
+    check_shape(translation, ["B", 3], "translation", dims)
+    for name, x in (("points", points), ("rotation", rotation), ("translation", translation)):
+        check_floating(x, name)
+    return dims
+
+
+def transform_points(points: Tensor, rotation: Tensor, translation: Tensor) -> Tensor:
+    r"""Model points to the camera frame, :math:`X_c = R (p + t)`.
+
+    The translation is added in the model frame, **before** the rotation (the paper's convention;
+    OpenCV's ``tvec`` equals ``R t``).
+
+    Args:
+        points: model points ``p`` in mm.
+        rotation: rotation matrices ``R``.
+        translation: translations ``t`` in the model frame, in mm.
+
+    Returns:
+        Points in the camera frame.
+
+    Shape:
+        - points: :math:`(B, N, 3)`
+        - rotation: :math:`(B, 3, 3)`
+        - translation: :math:`(B, 3)`
+        - output: :math:`(B, N, 3)`
+
+    Example:
+        >>> transform_points(torch.zeros(1, 2, 3), torch.eye(3)[None], torch.tensor([[0.0, 0.0, 500.0]])).shape
+        torch.Size([1, 2, 3])
+    """
+    _check_pose(points, rotation, translation)
+    return torch.matmul(points + translation[:, None, :], rotation.transpose(1, 2))
+
+
+def project_points(
+    points: Tensor,
+    rotation: Tensor,
+    translation: Tensor,
+    intrinsics: Tensor,
+    eps: float = 1e-9,
+) -> tuple[Tensor, Tensor]:
+    r"""Project model points to pixels with :math:`a = \frac{1}{z} K R (p + t)`.
+
+    With :math:`X_c = R (p + t) = (x, y, z)` and :math:`K = [[f, 0, u_0], [0, f, v_0]]` the pixel is
+    :math:`(f x / z + u_0,\; f y / z + v_0)`. The camera is OpenCV's (x right, y down, z forward) and
+    pixel ``(0, 0)`` is the centre of the top-left pixel. Depths with ``|z| < eps`` are clamped to
+    ``eps`` (keeping their sign) before the division; callers should mask ``depth <= 0``.
+
+    Args:
+        points: model points ``p`` in mm.
+        rotation: rotation matrices ``R``.
+        translation: translations ``t`` in the model frame, in mm.
+        intrinsics: ``(f, u0, v0)`` in pixels.
+        eps: smallest depth magnitude used in the division.
+
+    Returns:
+        ``(pixels, depth)``: the pixel coordinates ``(u, v)`` and the camera-frame depth ``z``.
+
+    Raises:
+        ValueError: on wrong shapes, mismatched batch sizes or non-floating inputs.
+
+    Shape:
+        - points: :math:`(B, N, 3)`
+        - rotation: :math:`(B, 3, 3)`
+        - translation: :math:`(B, 3)`
+        - intrinsics: :math:`(B, 3)`
+        - pixels: :math:`(B, N, 2)`
+        - depth: :math:`(B, N)`
+
+    Example:
+        >>> pts = torch.tensor([[[10.0, -20.0, 0.0]]])
+        >>> uv, z = project_points(pts, torch.eye(3)[None], torch.tensor([[0.0, 0.0, 500.0]]),
+        ...                        torch.tensor([[1000.0, 64.0, 64.0]]))
+        >>> uv, z
+        (tensor([[[84., 24.]]]), tensor([[500.]]))
+    """
+    dims = _check_pose(points, rotation, translation)
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    check_floating(intrinsics, "intrinsics")
+    camera = torch.matmul(points + translation[:, None, :], rotation.transpose(1, 2))
+    z = camera[..., 2]
+    z_safe = torch.where(z.abs() < eps, torch.full_like(z, eps) * torch.where(z < 0, -1.0, 1.0), z)
+    f = intrinsics[:, None, 0:1]
+    center = intrinsics[:, None, 1:3]
+    pixels = f * camera[..., :2] / z_safe[..., None] + center
+    return pixels, z

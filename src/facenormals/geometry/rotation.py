@@ -1,0 +1,101 @@
+r"""Euler-angle rotations for head poses.
+
+The angles are ``(roll, pitch, yaw)`` in radians and compose as
+
+.. math::
+
+    R = R_y(\text{yaw})\, R_x(\text{pitch})\, R_z(\text{roll}),
+
+so a vector is rolled about the optical axis first, then pitched about x, then yawed about y.
+The singularity of this order is at pitch = ±90°, outside the range of head poses, so profile
+views (yaw = ±90°) keep unique angles. See ``docs/conventions.md`` for the signs.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_floating, check_shape
+
+__all__ = ["euler_to_rotation_matrix", "rotation_matrix_to_euler"]
+
+
+def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
+    r"""Rotation matrices from ``(roll, pitch, yaw)`` angles.
+
+    Computes :math:`R = R_y(\text{yaw}) R_x(\text{pitch}) R_z(\text{roll})` with right-handed
+    elementary rotations, e.g. :math:`R_x(\alpha) = [[1,0,0],[0,\cos\alpha,-\sin\alpha],
+    [0,\sin\alpha,\cos\alpha]]`.
+
+    Args:
+        angles: roll, pitch and yaw in radians.
+
+    Returns:
+        The rotation matrices.
+
+    Raises:
+        ValueError: if ``angles`` is not a floating tensor of shape ``(B, 3)``.
+
+    Shape:
+        - angles: :math:`(B, 3)`
+        - output: :math:`(B, 3, 3)`
+
+    Example:
+        >>> R = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 0.5]]))
+        >>> R.shape
+        torch.Size([1, 3, 3])
+        >>> torch.allclose(R @ R.transpose(1, 2), torch.eye(3).expand(1, 3, 3), atol=1e-6)
+        True
+    """
+    check_shape(angles, ["B", 3], "angles")
+    check_floating(angles, "angles")
+    roll, pitch, yaw = angles.unbind(-1)
+    cr, sr = torch.cos(roll), torch.sin(roll)
+    cp, sp = torch.cos(pitch), torch.sin(pitch)
+    cy, sy = torch.cos(yaw), torch.sin(yaw)
+    # Product R_y(yaw) @ R_x(pitch) @ R_z(roll), written out.
+    r00 = cy * cr + sy * sp * sr
+    r01 = -cy * sr + sy * sp * cr
+    r02 = sy * cp
+    r10 = cp * sr
+    r11 = cp * cr
+    r12 = -sp
+    r20 = -sy * cr + cy * sp * sr
+    r21 = sy * sr + cy * sp * cr
+    r22 = cy * cp
+    return torch.stack([r00, r01, r02, r10, r11, r12, r20, r21, r22], dim=-1).reshape(-1, 3, 3)
+
+
+def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
+    r"""``(roll, pitch, yaw)`` angles of rotation matrices; inverse of :func:`euler_to_rotation_matrix`.
+
+    Uses ``pitch = atan2(-R[1,2], hypot(R[1,0], R[1,1]))``, ``roll = atan2(R[1,0], R[1,1])`` and
+    ``yaw = atan2(R[0,2], R[2,2])``. Exact for ``|pitch| < π/2``; roll and yaw lie in ``(-π, π]``.
+    At the singularity ``|pitch| = π/2`` only ``yaw ± roll`` is determined.
+
+    Args:
+        rotation: rotation matrices.
+
+    Returns:
+        Angles in radians.
+
+    Raises:
+        ValueError: if ``rotation`` is not a floating tensor of shape ``(B, 3, 3)``.
+
+    Shape:
+        - rotation: :math:`(B, 3, 3)`
+        - output: :math:`(B, 3)`
+
+    Example:
+        >>> angles = torch.tensor([[0.1, -0.2, 1.3]], dtype=torch.float64)
+        >>> rotation_matrix_to_euler(euler_to_rotation_matrix(angles))
+        tensor([[ 0.1000, -0.2000,  1.3000]], dtype=torch.float64)
+    """
+    check_shape(rotation, ["B", 3, 3], "rotation")
+    check_floating(rotation, "rotation")
+    r10, r11, r12 = rotation[:, 1, 0], rotation[:, 1, 1], rotation[:, 1, 2]
+    pitch = torch.atan2(-r12, torch.sqrt(r10 * r10 + r11 * r11))
+    roll = torch.atan2(r10, r11)
+    yaw = torch.atan2(rotation[:, 0, 2], rotation[:, 2, 2])
+    return torch.stack([roll, pitch, yaw], dim=-1)

@@ -1,0 +1,245 @@
+r"""Linear morphable models, :math:`X = X_0 + W y (+ E e)`."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from facenormals.core.check import check_floating, check_shape
+
+__all__ = ["MorphableModel", "ModelFileError"]
+
+FORMAT_NAME = "facenormals-morphable-model"
+FORMAT_VERSION = 1
+
+
+class ModelFileError(ValueError):
+    """A model file is missing, corrupt, truncated or of the wrong layout. The message names the file."""
+
+
+class MorphableModel(nn.Module):
+    r"""A linear shape model with optional expression blendshapes and named landmarks.
+
+    Vertices are :math:`X = X_0 + \sum_k y_k W_k + \sum_j e_j E_j`. Lengths are in mm and the model
+    frame is the one of ``docs/conventions.md`` (face along −z, y down). All arrays are registered as
+    buffers, so ``.to(device, dtype)`` moves them.
+
+    Args:
+        mean: the mean shape :math:`X_0`.
+        shape_basis: the shape components :math:`W_k`, one per coefficient.
+        faces: triangles, counter-clockwise seen from outside.
+        shape_std: the standard deviation :math:`\sigma_k` of each shape coefficient (default 1). The
+            shape prior is :math:`\tfrac12 \sum_k (y_k / \sigma_k)^2`.
+        expression_basis: optional expression blendshapes :math:`E_j`.
+        landmarks: optional mapping from landmark name to vertex index.
+        expression_names: optional names of the expression blendshapes.
+        name: a short name shown in ``repr`` and saved with the model.
+        metadata: JSON-serialisable extra information (source, licence, ...).
+
+    Raises:
+        ValueError: if the arrays have inconsistent shapes or indices are out of range.
+
+    Shape:
+        - mean: :math:`(N, 3)`; shape_basis: :math:`(K, N, 3)`; faces: :math:`(F, 3)`
+        - shape_std: :math:`(K,)`; expression_basis: :math:`(E, N, 3)`
+        - forward: shape_coeffs :math:`(B, K)`, expression_coeffs :math:`(B, E)` → :math:`(B, N, 3)`
+
+    Example:
+        >>> mean = torch.zeros(4, 3); basis = torch.randn(2, 4, 3)
+        >>> model = MorphableModel(mean, basis, torch.tensor([[0, 1, 2], [0, 2, 3]]))
+        >>> model(torch.zeros(5, 2)).shape
+        torch.Size([5, 4, 3])
+    """
+
+    mean: Tensor
+    shape_basis: Tensor
+    shape_std: Tensor
+    faces: Tensor
+    expression_basis: Tensor
+    landmark_indices: Tensor
+
+    def __init__(
+        self,
+        mean: Tensor,
+        shape_basis: Tensor,
+        faces: Tensor,
+        shape_std: Tensor | None = None,
+        expression_basis: Tensor | None = None,
+        landmarks: Mapping[str, int] | None = None,
+        expression_names: Sequence[str] | None = None,
+        name: str = "model",
+        metadata: Mapping[str, object] | None = None,
+    ) -> None:
+        super().__init__()
+        mean, shape_basis, faces = (torch.as_tensor(x) for x in (mean, shape_basis, faces))
+        dims = check_shape(mean, ["N", 3], "mean")
+        check_floating(mean, "mean")
+        check_shape(shape_basis, ["K", "N", 3], "shape_basis", dims)
+        check_floating(shape_basis, "shape_basis")
+        check_shape(faces, ["F", 3], "faces")
+        if torch.is_floating_point(faces) or faces.dtype == torch.bool:
+            raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
+        num_vertices = dims["N"]
+        if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_vertices):
+            raise ValueError(
+                f"faces: expected indices in [0, {num_vertices}), got range "
+                f"[{int(faces.min())}, {int(faces.max())}]"
+            )
+        dtype = mean.dtype
+        if shape_std is None:
+            shape_std = torch.ones(dims["K"], dtype=dtype)
+        shape_std = torch.as_tensor(shape_std, dtype=dtype)
+        check_shape(shape_std, ["K"], "shape_std", dims)
+        if shape_std.numel() and not bool((shape_std > 0).all()):
+            raise ValueError("shape_std: expected positive standard deviations")
+        if expression_basis is None:
+            expression_basis = torch.zeros(0, num_vertices, 3, dtype=dtype)
+        expression_basis = torch.as_tensor(expression_basis)
+        check_shape(expression_basis, ["E", "N", 3], "expression_basis", dims)
+        landmarks = dict(landmarks or {})
+        for key, index in landmarks.items():
+            if not 0 <= int(index) < num_vertices:
+                raise ValueError(f"landmarks: index {index} of {key!r} is outside [0, {num_vertices})")
+        names = list(expression_names) if expression_names is not None else []
+        if names and len(names) != expression_basis.shape[0]:
+            raise ValueError(
+                f"expression_names: expected {expression_basis.shape[0]} names, got {len(names)}"
+            )
+        self.name = name
+        self.metadata = dict(metadata or {})
+        self.landmark_names = list(landmarks)
+        self.expression_names = names
+        self.register_buffer("mean", mean.to(dtype).contiguous())
+        self.register_buffer("shape_basis", shape_basis.to(dtype).contiguous())
+        self.register_buffer("shape_std", shape_std.contiguous())
+        self.register_buffer("expression_basis", expression_basis.to(dtype).contiguous())
+        self.register_buffer("faces", faces.to(torch.long).contiguous())
+        self.register_buffer(
+            "landmark_indices", torch.tensor([int(i) for i in landmarks.values()], dtype=torch.long)
+        )
+
+    @property
+    def num_vertices(self) -> int:
+        return self.mean.shape[0]
+
+    @property
+    def num_shape(self) -> int:
+        return self.shape_basis.shape[0]
+
+    @property
+    def num_expressions(self) -> int:
+        return self.expression_basis.shape[0]
+
+    @property
+    def landmarks(self) -> dict[str, int]:
+        """Landmark name → vertex index."""
+        return dict(zip(self.landmark_names, self.landmark_indices.tolist()))
+
+    def forward(self, shape_coeffs: Tensor, expression_coeffs: Tensor | None = None) -> Tensor:
+        """Vertices of the heads with the given coefficients; see the class docstring for shapes."""
+        dims = check_shape(shape_coeffs, ["B", self.num_shape], "shape_coeffs")
+        check_floating(shape_coeffs, "shape_coeffs")
+        batch = dims["B"]
+        flat = self.mean.reshape(1, -1).expand(batch, -1)
+        vertices = torch.addmm(flat, shape_coeffs, self.shape_basis.reshape(self.num_shape, -1))
+        if expression_coeffs is not None:
+            check_shape(expression_coeffs, ["B", self.num_expressions], "expression_coeffs", dims)
+            check_floating(expression_coeffs, "expression_coeffs")
+            vertices = torch.addmm(
+                vertices, expression_coeffs, self.expression_basis.reshape(self.num_expressions, -1)
+            )
+        return vertices.reshape(batch, self.num_vertices, 3)
+
+    def landmark_vertices(self, vertices: Tensor, names: Sequence[str] | None = None) -> Tensor:
+        """Pick the landmark vertices ``(B, L, 3)`` out of ``vertices`` ``(B, N, 3)`` (all, or ``names``)."""
+        check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
+        if names is None:
+            index = self.landmark_indices
+        else:
+            lookup = self.landmarks
+            missing = [n for n in names if n not in lookup]
+            if missing:
+                raise ValueError(f"names: unknown landmarks {missing}; the model has {self.landmark_names}")
+            index = torch.tensor([lookup[n] for n in names], dtype=torch.long, device=vertices.device)
+        return vertices[:, index]
+
+    def sample_shape_coeffs(self, batch: int, scale: float = 1.0, generator: torch.Generator | None = None) -> Tensor:
+        """Random coefficients :math:`y_k \\sim \\mathcal{N}(0, (\\text{scale}\\,\\sigma_k)^2)` of shape ``(B, K)``."""
+        noise = torch.randn(batch, self.num_shape, generator=generator, dtype=self.shape_std.dtype)
+        return noise.to(self.shape_std.device) * (scale * self.shape_std)
+
+    def extra_repr(self) -> str:
+        return (
+            f"name={self.name!r}, vertices={self.num_vertices}, faces={self.faces.shape[0]}, "
+            f"shape={self.num_shape}, expressions={self.num_expressions}, landmarks={len(self.landmark_names)}"
+        )
+
+    def save(self, path: str | Path) -> None:
+        """Write the model to ``path`` in the facenormals ``.npz`` format (see docs/models.md)."""
+        arrays: dict[str, np.ndarray] = {
+            "format": np.array(FORMAT_NAME),
+            "version": np.array(FORMAT_VERSION),
+            "name": np.array(self.name),
+            "units": np.array("mm"),
+            "mean": self.mean.detach().cpu().numpy(),
+            "shape_basis": self.shape_basis.detach().cpu().numpy(),
+            "shape_std": self.shape_std.detach().cpu().numpy(),
+            "faces": self.faces.detach().cpu().numpy().astype(np.int64),
+            "expression_basis": self.expression_basis.detach().cpu().numpy(),
+            "expression_names": np.array(self.expression_names, dtype=str),
+            "landmark_names": np.array(self.landmark_names, dtype=str),
+            "landmark_indices": self.landmark_indices.cpu().numpy(),
+            "metadata": np.array(json.dumps(self.metadata)),
+        }
+        with open(path, "wb") as handle:
+            np.savez(handle, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> "MorphableModel":
+        """Read a model written by :meth:`save`.
+
+        Raises:
+            ModelFileError: if the file is missing, not an ``.npz`` archive, truncated, or lacks keys.
+        """
+        path = Path(path)
+        if not path.exists():
+            raise ModelFileError(f"{path}: model file not found")
+        required = ["format", "version", "mean", "shape_basis", "shape_std", "faces"]
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = [k for k in required if k not in data.files]
+                if missing:
+                    raise ModelFileError(f"{path}: not a facenormals model file, missing keys {missing}")
+                if str(data["format"]) != FORMAT_NAME:
+                    raise ModelFileError(f"{path}: format is {str(data['format'])!r}, expected {FORMAT_NAME!r}")
+                if int(data["version"]) > FORMAT_VERSION:
+                    raise ModelFileError(f"{path}: format version {int(data['version'])} is newer than supported")
+                arrays = {k: data[k] for k in data.files}
+        except ModelFileError:
+            raise
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as error:
+            raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
+        names = [str(n) for n in arrays.get("landmark_names", np.array([], dtype=str))]
+        indices = arrays.get("landmark_indices", np.zeros(0, dtype=np.int64)).tolist()
+        try:
+            return cls(
+                torch.from_numpy(arrays["mean"]).to(dtype),
+                torch.from_numpy(arrays["shape_basis"]).to(dtype),
+                torch.from_numpy(arrays["faces"].astype(np.int64)),
+                shape_std=torch.from_numpy(arrays["shape_std"]).to(dtype),
+                expression_basis=torch.from_numpy(arrays["expression_basis"]).to(dtype)
+                if "expression_basis" in arrays
+                else None,
+                landmarks=dict(zip(names, indices)),
+                expression_names=[str(n) for n in arrays.get("expression_names", [])] or None,
+                name=str(arrays.get("name", path.stem)),
+                metadata=json.loads(str(arrays.get("metadata", "{}"))),
+            )
+        except ValueError as error:
+            raise ModelFileError(f"{path}: inconsistent model arrays: {error}") from error

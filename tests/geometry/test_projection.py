@@ -1,0 +1,105 @@
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from facenormals.geometry import euler_to_rotation_matrix, project_points, transform_points
+from tests.conftest import assert_close
+
+
+def random_problem(batch, n, dtype=torch.float64, device="cpu", seed=0):
+    g = torch.Generator().manual_seed(seed)
+    points = (torch.rand(batch, n, 3, generator=g) * 2 - 1) * 100
+    angles = (torch.rand(batch, 3, generator=g) * 2 - 1) * torch.tensor([0.4, 0.6, 1.5])
+    R = euler_to_rotation_matrix(angles.double()).float()
+    t = torch.rand(batch, 3, generator=g) * 20 - 10
+    # put the object ~600 mm in front of the camera: R (p + t) has z ~ 600
+    t = t + (R.transpose(1, 2) @ torch.tensor([0.0, 0.0, 600.0]))
+    K = torch.stack([torch.rand(batch, generator=g) * 500 + 300, 64 + torch.randn(batch, generator=g),
+                     60 + torch.randn(batch, generator=g)], -1)
+    to = dict(dtype=dtype, device=device)
+    return points.to(**to), R.to(**to), t.to(**to), K.to(**to)
+
+
+def test_against_cv2_project_points(dtype, device):
+    points, R, t, K = random_problem(8, 100, dtype, device)
+    uv, z = project_points(points, R, t, K)
+    assert uv.shape == (8, 100, 2) and z.shape == (8, 100)
+    assert uv.dtype == dtype and uv.device == device
+    for b in range(8):
+        Rb = R[b].double().cpu().numpy()
+        rvec, _ = cv2.Rodrigues(Rb)
+        tvec = Rb @ t[b].double().cpu().numpy()  # paper: R (p + t) = R p + (R t)
+        f, u0, v0 = K[b].double().cpu().numpy()
+        cam = np.array([[f, 0, u0], [0, f, v0], [0, 0, 1]])
+        ref, _ = cv2.projectPoints(points[b].double().cpu().numpy(), rvec, tvec, cam, None)
+        err = np.abs(uv[b].double().cpu().numpy() - ref[:, 0, :]).max()
+        assert err < (1e-4 if dtype == torch.float64 else 5e-3), err
+
+
+def test_naive_loop_and_depth():
+    points, R, t, K = random_problem(2, 10)
+    uv, z = project_points(points, R, t, K)
+    for b in range(2):
+        for i in range(10):
+            Xc = R[b] @ (points[b, i] + t[b])
+            f, u0, v0 = K[b]
+            assert_close(uv[b, i], torch.stack([f * Xc[0] / Xc[2] + u0, f * Xc[1] / Xc[2] + v0]))
+            assert_close(z[b, i], Xc[2])
+    assert_close(transform_points(points, R, t)[..., 2], z)
+
+
+def test_pixel_centre_convention():
+    # a point on the optical axis lands exactly on the principal point, in pixel-centre coordinates
+    uv, _ = project_points(torch.zeros(1, 1, 3), torch.eye(3)[None], torch.tensor([[0.0, 0.0, 1.0]]),
+                           torch.tensor([[100.0, 63.5, 31.0]]))
+    assert uv.tolist() == [[[63.5, 31.0]]]
+    # +x goes right, +y goes down
+    uv, _ = project_points(torch.tensor([[[1.0, 2.0, 0.0]]]), torch.eye(3)[None], torch.tensor([[0.0, 0.0, 10.0]]),
+                           torch.tensor([[10.0, 0.0, 0.0]]))
+    assert uv.tolist() == [[[1.0, 2.0]]]
+
+
+def test_translation_before_rotation():
+    R = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 0.5]], dtype=torch.float64))
+    t = torch.tensor([[0.0, 0.0, 500.0]], dtype=torch.float64)
+    _, z = project_points(torch.zeros(1, 1, 3, dtype=torch.float64), R, t,
+                          torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64))
+    assert_close(z, torch.tensor([[500.0 * np.cos(0.5)]], dtype=torch.float64))
+
+
+def test_gradcheck():
+    points, R, t, K = random_problem(2, 5)
+    args = [x.clone().requires_grad_() for x in (points, R, t, K)]
+    assert torch.autograd.gradcheck(lambda *a: project_points(*a), args)
+
+
+def test_zero_depth_is_finite():
+    uv, z = project_points(torch.zeros(1, 1, 3), torch.eye(3)[None], torch.zeros(1, 3), torch.tensor([[1.0, 0.0, 0.0]]))
+    assert torch.isfinite(uv).all() and z.item() == 0.0
+
+
+@pytest.mark.parametrize(
+    "which,bad,match",
+    [
+        ("points", torch.zeros(2, 5), r"points: expected shape \(B, N, 3\)"),
+        ("points", torch.zeros(2, 5, 2), r"points: expected shape \(B, N, 3\)"),
+        ("rotation", torch.zeros(3, 3, 3), r"rotation: expected shape \(B, 3, 3\) with B=2"),
+        ("translation", torch.zeros(2, 2), r"translation: expected shape \(B, 3\)"),
+        ("intrinsics", torch.zeros(1, 3), r"intrinsics: expected shape \(B, 3\) with B=2"),
+        ("intrinsics", torch.zeros(2, 4), r"intrinsics: expected shape \(B, 3\)"),
+        ("points", torch.zeros(2, 5, 3, dtype=torch.long), "points: expected a floating-point"),
+    ],
+)
+def test_bad_input(which, bad, match):
+    args = dict(points=torch.zeros(2, 5, 3), rotation=torch.eye(3).expand(2, 3, 3), translation=torch.zeros(2, 3),
+                intrinsics=torch.ones(2, 3))
+    args[which] = bad
+    with pytest.raises(ValueError, match=match):
+        project_points(**args)
+
+
+def test_compile_smoke():
+    points, R, t, K = random_problem(2, 5)
+    fn = torch.compile(project_points, backend="eager")
+    assert_close(fn(points, R, t, K)[0], project_points(points, R, t, K)[0])

@@ -1,0 +1,86 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from facenormals.geometry import euler_to_rotation_matrix, rotation_matrix_to_euler
+from tests.conftest import assert_close
+
+
+def random_angles(n, dtype=torch.float64, device="cpu", seed=0):
+    g = torch.Generator().manual_seed(seed)
+    roll = (torch.rand(n, generator=g) * 2 - 1) * math.pi
+    pitch = (torch.rand(n, generator=g) * 2 - 1) * (math.pi / 2 - 0.05)
+    yaw = (torch.rand(n, generator=g) * 2 - 1) * math.pi
+    return torch.stack([roll, pitch, yaw], -1).to(dtype=dtype, device=device)
+
+
+def test_against_scipy_intrinsic_yxz(dtype, device):
+    angles = random_angles(50, dtype, device)
+    R = euler_to_rotation_matrix(angles)
+    a = angles.double().cpu().numpy()
+    # R = R_y(yaw) R_x(pitch) R_z(roll) is scipy's intrinsic "YXZ" with angles (yaw, pitch, roll).
+    ref = Rotation.from_euler("YXZ", np.stack([a[:, 2], a[:, 1], a[:, 0]], -1)).as_matrix()
+    assert R.dtype == dtype and R.device == device
+    assert_close(R, torch.from_numpy(ref), atol=1e-6 if dtype == torch.float32 else 1e-12)
+
+
+def test_elementary_rotations_and_signs():
+    # Face direction (-z) and head top (-y) in the model frame, see docs/conventions.md.
+    face, top = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64), torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    yaw = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 0.3]], dtype=torch.float64))[0]
+    assert (yaw @ face)[0] < 0  # positive yaw turns the face to image left
+    pitch = euler_to_rotation_matrix(torch.tensor([[0.0, 0.3, 0.0]], dtype=torch.float64))[0]
+    assert (pitch @ face)[1] > 0  # positive pitch turns the face down
+    roll = euler_to_rotation_matrix(torch.tensor([[0.3, 0.0, 0.0]], dtype=torch.float64))[0]
+    assert (roll @ top)[0] > 0  # positive roll tilts the head top to image right
+    c, s = math.cos(0.3), math.sin(0.3)
+    assert_close(roll, torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=torch.float64))
+
+
+def test_round_trip(dtype, device):
+    angles = random_angles(200, dtype, device, seed=1)
+    back = rotation_matrix_to_euler(euler_to_rotation_matrix(angles))
+    assert_close(back, angles, atol=1e-5 if dtype == torch.float32 else 1e-10)
+
+
+def test_round_trip_matrix_profile_views():
+    angles = torch.tensor([[0.2, 0.1, math.pi / 2], [-0.3, -0.4, -math.pi / 2]], dtype=torch.float64)
+    R = euler_to_rotation_matrix(angles)
+    assert_close(euler_to_rotation_matrix(rotation_matrix_to_euler(R)), R)
+    assert_close(rotation_matrix_to_euler(R), angles)
+
+
+def test_orthonormal(dtype):
+    R = euler_to_rotation_matrix(random_angles(20, dtype))
+    eye = torch.eye(3, dtype=dtype).expand(20, 3, 3)
+    assert_close(R @ R.transpose(1, 2), eye, atol=1e-6 if dtype == torch.float32 else 1e-12)
+    assert_close(torch.linalg.det(R), torch.ones(20, dtype=dtype), atol=1e-5 if dtype == torch.float32 else 1e-12)
+
+
+def test_gradcheck():
+    angles = random_angles(3, seed=2).requires_grad_()
+    assert torch.autograd.gradcheck(euler_to_rotation_matrix, (angles,))
+    R = euler_to_rotation_matrix(random_angles(3, seed=3)).requires_grad_()
+    assert torch.autograd.gradcheck(rotation_matrix_to_euler, (R,))
+
+
+@pytest.mark.parametrize("bad", [torch.zeros(3), torch.zeros(2, 4), torch.zeros(2, 3, 1)])
+def test_bad_angles(bad):
+    with pytest.raises(ValueError, match=r"angles: expected shape \(B, 3\)"):
+        euler_to_rotation_matrix(bad)
+
+
+def test_bad_rotation():
+    with pytest.raises(ValueError, match="rotation"):
+        rotation_matrix_to_euler(torch.zeros(2, 3, 4))
+    with pytest.raises(ValueError, match="floating"):
+        euler_to_rotation_matrix(torch.zeros(2, 3, dtype=torch.long))
+
+
+def test_compile_smoke():
+    fn = torch.compile(euler_to_rotation_matrix, backend="eager")
+    angles = random_angles(4)
+    assert_close(fn(angles), euler_to_rotation_matrix(angles))

@@ -1,0 +1,135 @@
+import numpy as np
+import pytest
+import torch
+
+from facenormals.models import ModelFileError, MorphableModel, load_ict_npz
+from tests.conftest import assert_close
+
+
+def tiny_model(dtype=torch.float64, num_shape=3, num_expr=2):
+    g = torch.Generator().manual_seed(0)
+    mean = torch.randn(5, 3, generator=g, dtype=dtype)
+    basis = torch.randn(num_shape, 5, 3, generator=g, dtype=dtype)
+    expr = torch.randn(num_expr, 5, 3, generator=g, dtype=dtype)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3], [0, 3, 4]])
+    return MorphableModel(mean, basis, faces, shape_std=torch.tensor([2.0, 1.0, 0.5], dtype=dtype),
+                          expression_basis=expr, landmarks={"nose_tip": 1, "chin": 4},
+                          expression_names=["a", "b"], name="tiny", metadata={"source": "test"})
+
+
+def test_forward_matches_naive_sum(dtype):
+    model = tiny_model().to(dtype)
+    y = torch.randn(4, 3, dtype=dtype)
+    e = torch.rand(4, 2, dtype=dtype)
+    out = model(y, e)
+    assert out.shape == (4, 5, 3) and out.dtype == dtype
+    for b in range(4):
+        ref = model.mean.clone()
+        for k in range(3):
+            ref = ref + y[b, k] * model.shape_basis[k]
+        for j in range(2):
+            ref = ref + e[b, j] * model.expression_basis[j]
+        assert_close(out[b], ref)
+    assert_close(model(torch.zeros(1, 3, dtype=dtype))[0], model.mean)
+
+
+def test_buffers_follow_to():
+    model = tiny_model().to(torch.float32)
+    assert model.mean.dtype == torch.float32 and model.shape_std.dtype == torch.float32
+    assert model.faces.dtype == torch.long
+    names = {n for n, _ in model.named_buffers()}
+    assert {"mean", "shape_basis", "shape_std", "faces", "expression_basis", "landmark_indices"} <= names
+
+
+def test_landmarks():
+    model = tiny_model()
+    v = model(torch.randn(2, 3, dtype=torch.float64))
+    assert model.landmarks == {"nose_tip": 1, "chin": 4}
+    assert_close(model.landmark_vertices(v), v[:, [1, 4]])
+    assert_close(model.landmark_vertices(v, ["chin"]), v[:, [4]])
+    with pytest.raises(ValueError, match="unknown landmarks"):
+        model.landmark_vertices(v, ["ear"])
+
+
+def test_gradients_flow():
+    model = tiny_model()
+    y = torch.randn(2, 3, dtype=torch.float64, requires_grad=True)
+    e = torch.randn(2, 2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: model(a, b), (y, e))
+
+
+def test_save_load_round_trip(tmp_path):
+    model = tiny_model()
+    path = tmp_path / "m.npz"
+    model.save(path)
+    loaded = MorphableModel.load(path, dtype=torch.float64)
+    for name in ("mean", "shape_basis", "shape_std", "expression_basis"):
+        assert_close(getattr(loaded, name), getattr(model, name))
+    assert torch.equal(loaded.faces, model.faces)
+    assert loaded.landmarks == model.landmarks
+    assert loaded.expression_names == ["a", "b"] and loaded.name == "tiny"
+    assert loaded.metadata == {"source": "test"}
+
+
+def test_load_errors_name_the_file(tmp_path):
+    missing = tmp_path / "nope.npz"
+    with pytest.raises(ModelFileError, match="nope.npz: model file not found"):
+        MorphableModel.load(missing)
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"this is not a zip archive")
+    with pytest.raises(ModelFileError, match="garbage.npz: cannot read"):
+        MorphableModel.load(garbage)
+    model = tiny_model()
+    good = tmp_path / "good.npz"
+    model.save(good)
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(ModelFileError, match="truncated.npz"):
+        MorphableModel.load(truncated)
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    with pytest.raises(ModelFileError, match=r"other.npz: not a facenormals model file, missing keys"):
+        MorphableModel.load(other)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(mean=torch.zeros(5, 2)), r"mean: expected shape \(N, 3\)"),
+        (dict(shape_basis=torch.zeros(3, 4, 3)), r"shape_basis: expected shape \(K, N, 3\) with N=5"),
+        (dict(faces=torch.tensor([[0, 1, 5]])), r"faces: expected indices in \[0, 5\)"),
+        (dict(faces=torch.zeros(2, 3)), "faces: expected an integer tensor"),
+        (dict(shape_std=torch.ones(4)), r"shape_std: expected shape \(K\) with K=3"),
+        (dict(shape_std=torch.tensor([1.0, 0.0, 1.0])), "shape_std: expected positive"),
+        (dict(landmarks={"x": 9}), "landmarks: index 9"),
+    ],
+)
+def test_constructor_errors(kwargs, match):
+    args = dict(mean=torch.zeros(5, 3), shape_basis=torch.zeros(3, 5, 3), faces=torch.tensor([[0, 1, 2]]))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        MorphableModel(**args)
+
+
+def test_forward_errors():
+    model = tiny_model()
+    with pytest.raises(ValueError, match=r"shape_coeffs: expected shape \(B, 3\)"):
+        model(torch.zeros(2, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"expression_coeffs: expected shape \(B, 2\) with B=2"):
+        model(torch.zeros(2, 3, dtype=torch.float64), torch.zeros(3, 2, dtype=torch.float64))
+
+
+def test_ict_npz(ict_npz):
+    model = load_ict_npz(ict_npz)
+    assert (model.num_vertices, model.num_shape, model.num_expressions) == (11248, 100, 53)
+    assert model.faces.shape == (22288, 3)
+    raw = np.load(ict_npz)
+    # cm -> mm and OpenGL -> model frame (x, -y, -z)
+    assert_close(model.mean, torch.from_numpy(raw["mean"] * np.array([10.0, -10.0, -10.0], dtype=np.float32)))
+    nose = model.mean[model.landmarks["ibug_30"]]
+    landmark_z = model.landmark_vertices(model.mean[None])[0, :, 2]
+    assert nose[2] == landmark_z.min()  # the nose tip is the most forward (−z) landmark
+    assert nose[2] < model.mean[:, 2].min() + 1.0  # ... and within 1 mm of the most forward vertex
+    left_eye, right_eye = model.mean[model.landmarks["ibug_36"]], model.mean[model.landmarks["ibug_45"]]
+    assert left_eye[0] < 0 < right_eye[0]  # subject's right eye is on image left
+    assert left_eye[1] < model.mean[model.landmarks["ibug_08"], 1]  # chin is below the eyes (y down)

@@ -1,0 +1,85 @@
+import pytest
+import torch
+
+from facenormals.geometry import euler_to_rotation_matrix, project_points, transform_points
+from facenormals.render import interpolate_vertex_attributes, rasterize_triangles
+from tests.conftest import assert_close
+
+
+def naive_cover(uv, tri, height, width):
+    """Pixel centres covered by a 2D triangle, by a loop over all pixels."""
+    (x0, y0), (x1, y1), (x2, y2) = uv[tri].tolist()
+    area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+    covered = torch.zeros(height, width, dtype=torch.bool)
+    for v in range(height):
+        for u in range(width):
+            w0 = ((x1 - u) * (y2 - v) - (y1 - v) * (x2 - u)) / area
+            w1 = ((x2 - u) * (y0 - v) - (y2 - v) * (x0 - u)) / area
+            covered[v, u] = w0 >= -1e-9 and w1 >= -1e-9 and 1 - w0 - w1 >= -1e-9
+    return covered
+
+
+def test_coverage_matches_naive_loop():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(5):
+        uv = torch.rand(1, 3, 2, generator=g, dtype=torch.float64) * torch.tensor([30.0, 20.0]) - 3
+        frags = rasterize_triangles(uv, torch.ones(1, 3, dtype=torch.float64), torch.tensor([[0, 1, 2]]), (18, 25))
+        assert torch.equal(frags.mask[0], naive_cover(uv[0], [0, 1, 2], 18, 25))
+
+
+def test_z_buffer_keeps_nearest():
+    uv = torch.tensor([[[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]])
+    depth = torch.tensor([[5.0, 5.0, 5.0, 2.0, 2.0, 2.0]])
+    frags = rasterize_triangles(uv, depth, torch.tensor([[0, 1, 2], [3, 4, 5]]), (12, 12))
+    assert (frags.face_index[frags.mask] == 1).all()
+    assert_close(frags.depth[frags.mask], torch.full_like(frags.depth[frags.mask], 2.0))
+    assert torch.isinf(frags.depth[~frags.mask]).all()
+
+
+def test_perspective_correct_barycentrics_reproject_to_pixel_centres():
+    # A tilted quad in 3D: interpolated camera points must project back onto the pixel centres.
+    points = torch.tensor([[[-40.0, -40.0, 0.0], [40.0, -40.0, 30.0], [40.0, 40.0, 60.0], [-40.0, 40.0, 20.0]]],
+                          dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    R = euler_to_rotation_matrix(torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64))
+    t = R.transpose(1, 2) @ torch.tensor([0.0, 0.0, 300.0], dtype=torch.float64)
+    K = torch.tensor([[200.0, 31.5, 30.0]], dtype=torch.float64)
+    uv, z = project_points(points, R, t, K)
+    frags = rasterize_triangles(uv, z, faces, (64, 64))
+    cam = interpolate_vertex_attributes(frags, faces, transform_points(points, R, t))  # (1, 3, H, W)
+    vv, uu = torch.nonzero(frags.mask[0], as_tuple=True)
+    X = cam[0, :, vv, uu]
+    assert_close(200.0 * X[0] / X[2] + 31.5, uu.double(), atol=1e-8, rtol=0)
+    assert_close(200.0 * X[1] / X[2] + 30.0, vv.double(), atol=1e-8, rtol=0)
+    assert_close(X[2], frags.depth[0, vv, uu])
+    assert frags.mask.sum() > 500
+
+
+def test_backface_culling():
+    uv = torch.tensor([[[0.0, 0.0], [0.0, 10.0], [10.0, 0.0]]])  # clockwise on screen (y down)
+    faces = torch.tensor([[0, 1, 2]])
+    assert rasterize_triangles(uv, torch.ones(1, 3), faces, (12, 12)).mask.any()
+    assert not rasterize_triangles(uv, torch.ones(1, 3), faces, (12, 12), cull_backfaces=True).mask.any()
+
+
+def test_behind_camera_skipped_and_batch():
+    uv = torch.tensor([[[0.0, 0.0], [9.0, 0.0], [0.0, 9.0]]]).repeat(2, 1, 1)
+    depth = torch.tensor([[1.0, 1.0, 1.0], [1.0, -1.0, 1.0]])
+    frags = rasterize_triangles(uv, depth, torch.tensor([[0, 1, 2]]), (10, 10))
+    assert frags.mask[0].sum() == 55 and frags.mask[1].sum() == 0
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(pixels=torch.zeros(1, 3, 3)), r"pixels: expected shape \(B, N, 2\)"),
+        (dict(depth=torch.zeros(2, 3)), r"depth: expected shape \(B, N\) with B=1"),
+        (dict(faces=torch.zeros(1, 3)), "faces: expected an integer tensor"),
+        (dict(image_size=(0, 4)), "image_size"),
+    ],
+)
+def test_bad_input(kwargs, match):
+    args = dict(pixels=torch.zeros(1, 3, 2), depth=torch.ones(1, 3), faces=torch.tensor([[0, 1, 2]]), image_size=(4, 4))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        rasterize_triangles(**args)
