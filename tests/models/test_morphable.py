@@ -99,7 +99,7 @@ def test_load_errors_name_the_file(tmp_path):
         (dict(shape_basis=torch.zeros(3, 4, 3)), r"shape_basis: expected shape \(K, N, 3\) with N=5"),
         (dict(faces=torch.tensor([[0, 1, 5]])), r"faces: expected indices in \[0, 5\)"),
         (dict(faces=torch.zeros(2, 3)), "faces: expected an integer tensor"),
-        (dict(shape_std=torch.ones(4)), r"shape_std: expected shape \(K\) with K=3"),
+        (dict(shape_std=torch.ones(4)), r"shape_std: expected shape \(K,\) with K=3"),
         (dict(shape_std=torch.tensor([1.0, 0.0, 1.0])), "shape_std: expected positive"),
         (dict(landmarks={"x": 9}), "landmarks: index 9"),
     ],

@@ -17,7 +17,8 @@ __all__ = ["check_finite", "check_floating", "check_same_dims", "check_shape", "
 
 
 def _format_shape(shape: Sequence[str | int]) -> str:
-    return "(" + ", ".join(str(s) for s in shape) + ")"
+    items = [str(s) for s in shape]
+    return "(" + ", ".join(items) + ("," if len(items) == 1 else "") + ")"
 
 
 def check_tensor(x: object, name: str) -> None:

@@ -1,0 +1,58 @@
+import pytest
+import torch
+
+from facenormals.core import check_finite, check_floating, check_same_dims, check_shape, check_tensor
+
+
+def test_binds_named_dims():
+    dims = check_shape(torch.zeros(2, 7, 3), ["B", "N", 3], "points")
+    assert dims == {"B": 2, "N": 7}
+    check_shape(torch.zeros(2, 3), ["B", 3], "translation", dims)
+
+
+def test_wildcard():
+    assert check_shape(torch.zeros(4, 5, 6, 3), ["*", "N", 3], "x") == {"N": 6}
+    with pytest.raises(ValueError, match=r"x: expected shape \(\*, N, 3\), got \(2,\)"):
+        check_shape(torch.zeros(2), ["*", "N", 3], "x")
+
+
+@pytest.mark.parametrize(
+    "shape,match",
+    [
+        ((2, 7), r"points: expected shape \(B, N, 3\) \(3 dimensions\), got \(2, 7\) \(2 dimensions\)"),
+        ((2, 7, 4), r"points: expected shape \(B, N, 3\), got \(2, 7, 4\)"),
+    ],
+)
+def test_messages_name_argument_and_shapes(shape, match):
+    with pytest.raises(ValueError, match=match):
+        check_shape(torch.zeros(shape), ["B", "N", 3], "points")
+
+
+def test_batch_mismatch():
+    dims = check_shape(torch.zeros(2, 7, 3), ["B", "N", 3], "points")
+    with pytest.raises(ValueError, match=r"rotation: expected shape \(B, 3, 3\) with B=2 .* got \(3, 3, 3\)"):
+        check_shape(torch.zeros(3, 3, 3), ["B", 3, 3], "rotation", dims)
+
+
+def test_repeated_name_within_one_tensor():
+    check_shape(torch.zeros(3, 3), ["P", "P"], "matrix")
+    with pytest.raises(ValueError, match="equal P"):
+        check_shape(torch.zeros(3, 4), ["P", "P"], "matrix")
+
+
+def test_non_tensor_and_dtype_and_finite():
+    with pytest.raises(ValueError, match="x: expected a torch.Tensor, got list"):
+        check_tensor([1.0], "x")
+    with pytest.raises(ValueError, match="x: expected a torch.Tensor"):
+        check_shape([1.0], ["N"], "x")
+    with pytest.raises(ValueError, match="x: expected a floating-point tensor, got dtype torch.int64"):
+        check_floating(torch.zeros(2, dtype=torch.long), "x")
+    with pytest.raises(ValueError, match="x: expected finite values, got 1 NaN"):
+        check_finite(torch.tensor([1.0, float("nan")]), "x")
+    check_finite(torch.ones(3), "x")
+
+
+def test_check_same_dims():
+    check_same_dims({"B": 2}, "x", B=2)
+    with pytest.raises(ValueError, match="x: expected B=3, got B=2"):
+        check_same_dims({"B": 2}, "x", B=3)
