@@ -103,3 +103,19 @@ def test_compile_smoke():
     points, R, t, K = random_problem(2, 5)
     fn = torch.compile(project_points, backend="eager")
     assert_close(fn(points, R, t, K)[0], project_points(points, R, t, K)[0])
+
+
+def test_projection_jacobian_matches_autograd():
+    from facenormals.geometry import projection_jacobian
+
+    points, R, t, K = random_problem(2, 4)
+    cam = transform_points(points, R, t)
+    J = projection_jacobian(cam, K)
+    ref = torch.autograd.functional.jacobian(
+        lambda c: project_points(c, torch.eye(3, dtype=c.dtype).expand(2, 3, 3), torch.zeros(2, 3, dtype=c.dtype), K)[0],
+        cam)  # (B,N,2,B,N,3)
+    for b in range(2):
+        for i in range(4):
+            assert_close(J[b, i], ref[b, i, :, b, i])
+    with pytest.raises(ValueError, match="camera_points"):
+        projection_jacobian(torch.zeros(2, 4, 2), K)

@@ -84,3 +84,14 @@ def test_compile_smoke():
     fn = torch.compile(euler_to_rotation_matrix, backend="eager")
     angles = random_angles(4)
     assert_close(fn(angles), euler_to_rotation_matrix(angles))
+
+
+def test_rotation_derivatives_match_autograd():
+    from facenormals.geometry import euler_rotation_derivatives
+
+    angles = random_angles(4, seed=5)
+    D = euler_rotation_derivatives(angles)
+    J = torch.autograd.functional.jacobian(euler_to_rotation_matrix, angles)  # (B,3,3,B,3)
+    for b in range(4):
+        for j in range(3):
+            assert_close(D[b, j], J[b, :, :, b, j])

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from facenormals.core.check import check_floating, check_shape
 
-__all__ = ["project_points", "transform_points"]
+__all__ = ["project_points", "projection_jacobian", "transform_points"]
 
 
 def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor) -> dict[str, int]:
@@ -99,3 +99,40 @@ def project_points(
     center = intrinsics[:, None, 1:3]
     pixels = f * camera[..., :2] / z_safe[..., None] + center
     return pixels, z
+
+
+def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 1e-9) -> Tensor:
+    r"""Jacobian of the pixel ``(u, v)`` with respect to the camera-frame point :math:`X_c = (x, y, z)`.
+
+    .. math::
+
+        \frac{\partial (u, v)}{\partial X_c} = \frac{f}{z}
+        \begin{pmatrix} 1 & 0 & -x/z \\ 0 & 1 & -y/z \end{pmatrix}
+
+    Chain it with :math:`\partial X_c / \partial p = R` (shape), :math:`R` (translation) or the
+    rotation derivatives of :func:`~facenormals.geometry.euler_rotation_derivatives` (pose).
+
+    Args:
+        camera_points: points in the camera frame.
+        intrinsics: ``(f, u0, v0)``.
+        eps: smallest depth magnitude, as in :func:`project_points`.
+
+    Shape:
+        - camera_points: :math:`(B, N, 3)`; intrinsics: :math:`(B, 3)`
+        - output: :math:`(B, N, 2, 3)`
+
+    Example:
+        >>> projection_jacobian(torch.tensor([[[0.0, 0.0, 2.0]]]), torch.tensor([[4.0, 0.0, 0.0]]))
+        tensor([[[[2., 0., -0.],
+                  [0., 2., -0.]]]])
+    """
+    dims = check_shape(camera_points, ["B", "N", 3], "camera_points")
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    check_floating(camera_points, "camera_points")
+    x, y, z = camera_points.unbind(-1)
+    z = torch.where(z.abs() < eps, torch.full_like(z, eps) * torch.where(z < 0, -1.0, 1.0), z)
+    scale = intrinsics[:, None, 0] / z
+    zero = torch.zeros_like(x)
+    row_u = torch.stack([scale, zero, -scale * x / z], dim=-1)
+    row_v = torch.stack([zero, scale, -scale * y / z], dim=-1)
+    return torch.stack([row_u, row_v], dim=-2)

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from facenormals.core.check import check_floating, check_shape
 
-__all__ = ["euler_to_rotation_matrix", "rotation_matrix_to_euler"]
+__all__ = ["euler_rotation_derivatives", "euler_to_rotation_matrix", "rotation_matrix_to_euler"]
 
 
 def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
@@ -65,6 +65,49 @@ def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
     r21 = sy * sr + cy * sp * cr
     r22 = cy * cp
     return torch.stack([r00, r01, r02, r10, r11, r12, r20, r21, r22], dim=-1).reshape(-1, 3, 3)
+
+
+def _elementary(angle: Tensor, axis: int, derivative: bool) -> Tensor:
+    """R_axis(angle) or its derivative d/dangle, ``(B, 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    if derivative:
+        c, s, one = -s, c, zero
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]  # the plane the rotation acts in
+    out = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
+    out[:, axis, axis] = one
+    out[:, i, i] = c
+    out[:, j, j] = c
+    out[:, i, j] = -s
+    out[:, j, i] = s
+    return out
+
+
+def euler_rotation_derivatives(angles: Tensor) -> Tensor:
+    r"""Derivatives of :func:`euler_to_rotation_matrix` with respect to roll, pitch and yaw.
+
+    Used to build analytic Jacobians of poses: :math:`\partial (R p) / \partial \theta_j = D_j p`.
+
+    Args:
+        angles: roll, pitch and yaw in radians.
+
+    Returns:
+        ``D`` with ``D[:, j] = dR / d angles[:, j]``.
+
+    Shape:
+        - angles: :math:`(B, 3)`
+        - output: :math:`(B, 3, 3, 3)`
+
+    Example:
+        >>> euler_rotation_derivatives(torch.zeros(2, 3)).shape
+        torch.Size([2, 3, 3, 3])
+    """
+    check_shape(angles, ["B", 3], "angles")
+    check_floating(angles, "angles")
+    roll, pitch, yaw = angles.unbind(-1)
+    rz, rx, ry = _elementary(roll, 2, False), _elementary(pitch, 0, False), _elementary(yaw, 1, False)
+    drz, drx, dry = _elementary(roll, 2, True), _elementary(pitch, 0, True), _elementary(yaw, 1, True)
+    return torch.stack([ry @ rx @ drz, ry @ drx @ rz, dry @ rx @ rz], dim=1)
 
 
 def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
