@@ -1,0 +1,5 @@
+"""Batched non-linear least-squares solvers."""
+
+from facenormals.optim.lm import LMResult, LMStatus, levenberg_marquardt
+
+__all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]

@@ -1,0 +1,482 @@
+"""Tests of the batched Levenberg-Marquardt solver against scipy's MINPACK ``lm``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import least_squares
+
+from facenormals.optim import LMResult, LMStatus, levenberg_marquardt
+from tests.conftest import assert_close
+
+F64 = torch.float64
+DAMPING_MODES = ["marquardt", "levenberg"]
+JACOBIAN_MODES = ["forward", "reverse"]
+
+
+def scipy_lm(residual, x0: np.ndarray, jac=None):
+    """scipy's MINPACK Levenberg-Marquardt with tight tolerances, for one problem."""
+    kwargs = {} if jac is None else {"jac": jac}
+    return least_squares(
+        residual, x0, method="lm", ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=100_000, **kwargs
+    )
+
+
+def numpy_residual(residual_fn, index: int | None = None):
+    """Residuals of one element of a batched torch residual function, as a numpy function."""
+
+    def fn(z: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(z, dtype=F64)[None]
+        if index is not None:
+            return residual_fn(x, index)[0].numpy()
+        return residual_fn(x)[0].numpy()
+
+    return fn
+
+
+def assert_same_optimum(cost: float, reference: float, rtol: float = 1e-6, floor: float = 1e-12) -> None:
+    """Relative cost difference <= rtol, with an absolute floor for zero-residual optima."""
+    assert abs(cost - reference) <= rtol * abs(reference) + floor, (cost, reference)
+
+
+# ---------------------------------------------------------------------------------------------
+# Problems
+# ---------------------------------------------------------------------------------------------
+
+
+def rosenbrock(x: torch.Tensor) -> torch.Tensor:
+    return torch.stack([10.0 * (x[:, 1] - x[:, 0] ** 2), 1.0 - x[:, 0]], dim=-1)
+
+
+def rosenbrock_jacobian(x: torch.Tensor) -> torch.Tensor:
+    J = torch.zeros(x.shape[0], 2, 2, dtype=x.dtype, device=x.device)
+    J[:, 0, 0] = -20.0 * x[:, 0]
+    J[:, 0, 1] = 10.0
+    J[:, 1, 0] = -1.0
+    return J
+
+
+ROSENBROCK_STARTS = [[-1.2, 1.0], [2.0, 2.0], [-2.0, -2.0], [0.0, 0.0], [3.0, -1.0], [10.0, -10.0]]
+
+
+class ExponentialFit:
+    """Fit ``y = a exp(b t) + c`` to noisy samples, one data set per batch element."""
+
+    def __init__(self, batch: int = 4, samples: int = 50, seed: int = 0, dtype=F64, device="cpu"):
+        gen = torch.Generator().manual_seed(seed)
+        self.t = torch.linspace(0.0, 2.0, samples, dtype=F64)
+        self.truth = torch.stack(
+            [
+                1.0 + 2.0 * torch.rand(batch, generator=gen, dtype=F64),
+                -2.0 + 1.5 * torch.rand(batch, generator=gen, dtype=F64),
+                -0.5 + torch.rand(batch, generator=gen, dtype=F64),
+            ],
+            dim=-1,
+        )
+        clean = self.truth[:, :1] * torch.exp(self.truth[:, 1:2] * self.t) + self.truth[:, 2:]
+        self.y64 = clean + 0.02 * torch.randn(batch, samples, generator=gen, dtype=F64)
+        self.t_ = self.t.to(dtype=dtype, device=device)
+        self.y = self.y64.to(dtype=dtype, device=device)
+        self.x0 = torch.tensor([[1.0, -0.5, 0.0]], dtype=dtype, device=device).expand(batch, 3)
+
+    def residual(self, x: torch.Tensor, index: int | None = None) -> torch.Tensor:
+        t = self.t_ if index is None else self.t
+        y = self.y if index is None else self.y64[index : index + 1]
+        return x[:, :1] * torch.exp(x[:, 1:2] * t) + x[:, 2:] - y
+
+    def jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        e = torch.exp(x[:, 1:2] * self.t_)
+        return torch.stack([e, x[:, :1] * self.t_ * e, torch.ones_like(e)], dim=-1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Agreement with scipy
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("damping_mode", DAMPING_MODES)
+@pytest.mark.parametrize("jacobian_mode", JACOBIAN_MODES)
+def test_rosenbrock_matches_scipy(damping_mode, jacobian_mode):
+    x0 = torch.tensor(ROSENBROCK_STARTS, dtype=F64)
+    result = levenberg_marquardt(
+        rosenbrock, x0, damping_mode=damping_mode, jacobian_mode=jacobian_mode
+    )
+    assert isinstance(result, LMResult)
+    assert result.status.tolist() == [LMStatus.CONVERGED] * len(ROSENBROCK_STARTS)
+    for b, start in enumerate(ROSENBROCK_STARTS):
+        ref = scipy_lm(numpy_residual(rosenbrock), np.array(start))
+        assert_same_optimum(result.cost[b].item(), ref.cost)
+        np.testing.assert_allclose(result.x[b].numpy(), ref.x, atol=1e-6)
+    assert_close(result.x, torch.ones_like(x0), atol=1e-8, rtol=0)
+
+
+@pytest.mark.parametrize("damping_mode", DAMPING_MODES)
+@pytest.mark.parametrize("analytic", [False, True], ids=["autograd", "analytic"])
+def test_exponential_fit_matches_scipy(damping_mode, analytic):
+    problem = ExponentialFit(batch=5)
+    result = levenberg_marquardt(
+        problem.residual,
+        problem.x0,
+        jacobian_fn=problem.jacobian if analytic else None,
+        damping_mode=damping_mode,
+    )
+    assert result.converged.all(), result.summary()
+    for b in range(5):
+        ref = scipy_lm(numpy_residual(problem.residual, b), problem.x0[b].numpy())
+        assert ref.success
+        assert ref.cost > 1e-4  # a noisy fit: the optimum is not zero
+        assert_same_optimum(result.cost[b].item(), ref.cost)
+        np.testing.assert_allclose(result.x[b].numpy(), ref.x, rtol=1e-5, atol=1e-6)
+
+
+class PoseProblem:
+    """6-DoF pose (roll, pitch, yaw, tx, ty, tz) from 68 noisy 2D landmarks."""
+
+    def __init__(self, batch: int = 3, seed: int = 0):
+        from facenormals.geometry import euler_to_rotation_matrix, project_points
+
+        self.rotation_fn = euler_to_rotation_matrix
+        self.project_fn = project_points
+        gen = torch.Generator().manual_seed(seed)
+        self.points = (torch.rand(batch, 68, 3, generator=gen, dtype=F64) * 2.0 - 1.0) * 80.0
+        self.intrinsics = torch.tensor([[500.0, 64.0, 64.0]], dtype=F64).expand(batch, 3)
+        angles = (torch.rand(batch, 3, generator=gen, dtype=F64) * 2.0 - 1.0) * 0.4
+        translation = torch.cat(
+            [
+                (torch.rand(batch, 2, generator=gen, dtype=F64) * 2.0 - 1.0) * 20.0,
+                480.0 + 40.0 * torch.rand(batch, 1, generator=gen, dtype=F64),
+            ],
+            dim=-1,
+        )
+        self.truth = torch.cat([angles, translation], dim=-1)
+        clean = self.project(self.truth)
+        self.targets = clean + 0.5 * torch.randn(clean.shape, generator=gen, dtype=F64)
+        self.x0 = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 450.0]], dtype=F64).expand(batch, 6)
+
+    def project(self, x: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
+        rotation = self.rotation_fn(x[:, :3])
+        pixels, _ = self.project_fn(self.points[rows], rotation, x[:, 3:], self.intrinsics[rows])
+        return pixels.reshape(x.shape[0], -1)
+
+    def residual(self, x: torch.Tensor, index: int | None = None) -> torch.Tensor:
+        rows = slice(None) if index is None else slice(index, index + 1)
+        return self.project(x, rows) - self.targets[rows]
+
+
+@pytest.mark.parametrize("jacobian_mode", JACOBIAN_MODES)
+def test_pose_from_landmarks_matches_scipy(jacobian_mode):
+    pytest.importorskip("facenormals.geometry")
+    problem = PoseProblem(batch=3)
+    result = levenberg_marquardt(problem.residual, problem.x0, jacobian_mode=jacobian_mode)
+    assert result.converged.all(), result.summary()
+    for b in range(3):
+        ref = scipy_lm(numpy_residual(problem.residual, b), problem.x0[b].numpy())
+        assert ref.success
+        assert_same_optimum(result.cost[b].item(), ref.cost)
+        np.testing.assert_allclose(result.x[b].numpy(), ref.x, rtol=1e-6, atol=1e-7)
+    # The noise is small: the estimate is close to the true pose.
+    assert_close(result.x[:, :3], problem.truth[:, :3], atol=2e-2, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Robustness
+# ---------------------------------------------------------------------------------------------
+
+
+NAN_ROW, REGION_ROW, SQRT_ROW = 7, 30, 50
+
+
+def make_mixed_batch(batch: int = 64, seed: int = 1):
+    """Rosenbrock variants of mixed difficulty plus three rows that cannot converge."""
+    gen = torch.Generator().manual_seed(seed)
+    scale = torch.tensor([1.0, 10.0, 100.0], dtype=F64)[torch.arange(batch) % 3]
+    x0 = (torch.rand(batch, 2, generator=gen, dtype=F64) * 2.0 - 1.0) * 3.0
+    x0[::5] *= 8.0  # far starts
+    kind = torch.zeros(batch, dtype=torch.long)
+    kind[NAN_ROW] = 1  # NaN residuals everywhere
+    kind[REGION_ROW] = 2  # finite only for x1 < 0.5, minimum at x1 = 3
+    kind[SQRT_ROW] = 3  # infinite Jacobian at x0
+    x0[REGION_ROW] = torch.tensor([0.0, 1.0], dtype=F64)
+    x0[SQRT_ROW] = torch.tensor([0.0, 1.0], dtype=F64)
+
+    def residual(x: torch.Tensor, index: int | None = None) -> torch.Tensor:
+        rows = slice(None) if index is None else slice(index, index + 1)
+        a, k = scale[rows], kind[rows]
+        x1, x2 = x[:, 0], x[:, 1]
+        r = torch.stack([a * (x2 - x1**2), 1.0 - x1], dim=-1)
+        nan = torch.full_like(r, float("nan"))
+        r = torch.where((k == 1)[:, None], nan, r)
+        region = torch.where((x1 < 0.5)[:, None], torch.stack([x1 - 3.0, x2], dim=-1), nan)
+        r = torch.where((k == 2)[:, None], region, r)
+        x1_safe = torch.where(k == 3, x1, torch.ones_like(x1))
+        r = torch.where((k == 3)[:, None], torch.stack([torch.sqrt(x1_safe) - 1.0, x2], -1), r)
+        return r
+
+    return residual, x0, kind
+
+
+def test_bad_elements_do_not_spoil_the_batch():
+    residual, x0, kind = make_mixed_batch()
+    result = levenberg_marquardt(residual, x0, max_iterations=200)
+    good = (kind == 0).nonzero().squeeze(1).tolist()
+    assert len(good) == 61
+    for b in good:
+        assert result.status[b] == LMStatus.CONVERGED, (b, result.reasons[b])
+        ref = scipy_lm(numpy_residual(residual, b), x0[b].numpy())
+        assert_same_optimum(result.cost[b].item(), ref.cost)
+        np.testing.assert_allclose(result.x[b].numpy(), ref.x, atol=1e-6)
+    for b in good[::6]:  # the same path as when solved alone
+        alone = levenberg_marquardt(lambda z: residual(z, b), x0[b : b + 1], max_iterations=200)
+        assert_close(result.x[b], alone.x[0], rtol=1e-10, atol=1e-12)
+        assert result.iterations[b] == alone.iterations[0]
+
+    assert result.status[NAN_ROW] == LMStatus.FAILED
+    assert result.reasons[NAN_ROW] == "non-finite residuals at x0"
+    assert torch.equal(result.x[NAN_ROW], x0[NAN_ROW])  # frozen
+    assert result.iterations[NAN_ROW] == 0
+
+    assert result.status[SQRT_ROW] == LMStatus.FAILED
+    assert result.reasons[SQRT_ROW] == "non-finite Jacobian"
+    assert torch.equal(result.x[SQRT_ROW], x0[SQRT_ROW])
+
+    # The region row is stopped by its NaN boundary: it stays finite and never gets worse.
+    assert result.reasons[REGION_ROW]
+    assert torch.isfinite(result.x[REGION_ROW]).all() and result.x[REGION_ROW, 0] < 0.5
+    assert result.cost[REGION_ROW] <= result.initial_cost[REGION_ROW]
+    assert result.num_iterations == int(result.iterations.max())
+
+
+def make_singular_problem(dtype=F64, device="cpu"):
+    """Linear least squares whose third parameter has a zero Jacobian column."""
+    gen = torch.Generator().manual_seed(3)
+    A = torch.randn(2, 8, 3, generator=gen, dtype=F64)
+    A[:, :, 2] = 0.0
+    b = torch.randn(2, 8, generator=gen, dtype=F64)
+    A, b = A.to(dtype=dtype, device=device), b.to(dtype=dtype, device=device)
+    x0 = torch.tensor([[0.5, -0.5, 2.0], [1.0, 1.0, -3.0]], dtype=dtype, device=device)
+    solution = torch.linalg.pinv(A[:, :, :2]) @ b[..., None]
+    optimum = 0.5 * ((A[:, :, :2] @ solution)[..., 0] - b).square().sum(-1)
+    return (lambda x: (A @ x[..., None])[..., 0] - b), x0, optimum
+
+
+@pytest.mark.parametrize("damping_mode", DAMPING_MODES)
+@pytest.mark.parametrize("damping", [1e-3, 0.0])
+def test_singular_system(damping_mode, damping):
+    residual, x0, optimum = make_singular_problem()
+    result = levenberg_marquardt(residual, x0, damping_mode=damping_mode, damping=damping)
+    assert result.converged.all(), result.summary()
+    assert_close(result.cost, optimum, rtol=1e-9, atol=1e-12)
+    assert torch.equal(result.x[:, 2], x0[:, 2])  # the unobservable parameter does not move
+
+
+def test_cholesky_fallback_gives_gauss_newton_step():
+    # Levenberg damping 0 on a zero column: H is exactly singular, Cholesky fails, pinv takes over.
+    residual, x0, optimum = make_singular_problem()
+    result = levenberg_marquardt(residual, x0, damping_mode="levenberg", damping=0.0, max_iterations=1)
+    assert_close(result.cost, optimum, rtol=1e-9, atol=1e-12)
+    assert torch.equal(result.x[:, 2], x0[:, 2])
+
+
+def test_rank_deficient_duplicate_columns():
+    gen = torch.Generator().manual_seed(4)
+    A = torch.randn(3, 10, 4, generator=gen, dtype=F64)
+    A[:, :, 3] = A[:, :, 1]
+    b = torch.randn(3, 10, generator=gen, dtype=F64)
+    x0 = torch.zeros(3, 4, dtype=F64)
+    solution = torch.linalg.pinv(A) @ b[..., None]
+    optimum = 0.5 * ((A @ solution)[..., 0] - b).square().sum(-1)
+    for mode in DAMPING_MODES:
+        result = levenberg_marquardt(lambda x: (A @ x[..., None])[..., 0] - b, x0, damping_mode=mode)
+        assert result.converged.all(), result.summary()
+        assert_close(result.cost, optimum, rtol=1e-9, atol=1e-12)
+
+
+def test_max_iterations_status():
+    x0 = torch.tensor([[-1.2, 1.0], [10.0, -10.0]], dtype=F64)
+    result = levenberg_marquardt(rosenbrock, x0, max_iterations=3)
+    assert result.status.tolist() == [LMStatus.MAX_ITERATIONS] * 2
+    assert result.reasons == ["max_iterations reached"] * 2
+    assert result.iterations.tolist() == [3, 3] and result.num_iterations == 3
+    assert (result.cost < result.initial_cost).all()
+
+    result = levenberg_marquardt(rosenbrock, x0, max_iterations=0)
+    assert result.status.tolist() == [LMStatus.MAX_ITERATIONS] * 2
+    assert torch.equal(result.x, x0) and result.num_iterations == 0
+
+
+def test_damping_exceeded_max_damping():
+    # Finite only at x0: every trial step is rejected and the damping runs away.
+    x0 = torch.tensor([[1.0, 2.0], [-1.2, 1.0]], dtype=F64)
+
+    def residual(x):
+        r = rosenbrock(x)
+        away = (x[0] != x0[0]).any()
+        return torch.cat([torch.where(away, float("nan"), r[:1]), r[1:]])
+
+    result = levenberg_marquardt(residual, x0, max_damping=1e3)
+    assert result.status.tolist() == [LMStatus.FAILED, LMStatus.CONVERGED]
+    assert result.reasons[0] == "damping exceeded max_damping"
+    assert torch.equal(result.x[0], x0[0])
+    assert result.damping[0] > 1e3
+    assert_close(result.x[1], torch.ones(2, dtype=F64), atol=1e-8, rtol=0)
+
+
+def test_zero_gradient_at_start_converges_immediately():
+    x0 = torch.tensor([[1.0, 1.0], [0.5, 0.25]], dtype=F64)  # both exact optima of their problems
+    result = levenberg_marquardt(lambda x: torch.stack([x[:, 0] ** 2 - x[:, 1]], -1), x0)
+    assert result.status.tolist() == [LMStatus.CONVERGED] * 2
+    assert result.reasons == ["gradient norm below gtol"] * 2
+    assert result.num_iterations == 0 and torch.equal(result.x, x0)
+
+
+@pytest.mark.parametrize("jacobian_mode", JACOBIAN_MODES)
+def test_analytic_jacobian_matches_autograd(jacobian_mode):
+    x0 = torch.tensor(ROSENBROCK_STARTS, dtype=F64)
+    analytic = levenberg_marquardt(rosenbrock, x0, jacobian_fn=rosenbrock_jacobian)
+    autograd = levenberg_marquardt(rosenbrock, x0, jacobian_mode=jacobian_mode)
+    assert_close(analytic.x, autograd.x, rtol=1e-12, atol=1e-12)
+    assert torch.equal(analytic.iterations, autograd.iterations)
+
+    problem = ExponentialFit(batch=3, seed=5)
+    analytic = levenberg_marquardt(problem.residual, problem.x0, jacobian_fn=problem.jacobian)
+    autograd = levenberg_marquardt(problem.residual, problem.x0, jacobian_mode=jacobian_mode)
+    assert_close(analytic.x, autograd.x, rtol=1e-10, atol=1e-10)
+    assert_close(analytic.cost, autograd.cost, rtol=1e-12, atol=1e-14)
+
+
+def test_chunked_autograd_jacobian():
+    problem = ExponentialFit(batch=3, seed=6)
+    full = levenberg_marquardt(problem.residual, problem.x0)
+    for mode in JACOBIAN_MODES:
+        chunked = levenberg_marquardt(problem.residual, problem.x0, jacobian_mode=mode, chunk_size=2)
+        assert_close(chunked.x, full.x, rtol=1e-10, atol=1e-10)
+
+
+def test_dtype_and_device_follow_x0(dtype, device):
+    x0 = torch.tensor(ROSENBROCK_STARTS, dtype=dtype, device=device)
+    result = levenberg_marquardt(rosenbrock, x0)
+    for tensor in (result.x, result.cost, result.initial_cost, result.damping):
+        assert tensor.dtype == dtype and tensor.device == x0.device
+    for tensor in (result.iterations, result.status):
+        assert tensor.dtype == torch.long and tensor.device == x0.device
+    assert result.converged.all(), result.summary()
+    assert_close(result.x, torch.ones_like(x0), atol=1e-3 if dtype == torch.float32 else 1e-8, rtol=0)
+
+    problem = ExponentialFit(batch=4, dtype=dtype, device=device)
+    result = levenberg_marquardt(problem.residual, problem.x0, jacobian_fn=problem.jacobian)
+    assert result.x.dtype == dtype and result.x.device == x0.device
+    assert result.converged.all(), result.summary()
+    reference = levenberg_marquardt(ExponentialFit(batch=4).residual, ExponentialFit(batch=4).x0)
+    rtol = 1e-4 if dtype == torch.float32 else 1e-9
+    assert_close(result.cost.double().cpu(), reference.cost, rtol=rtol, atol=0)
+
+
+def test_pose_float32_converges():
+    pytest.importorskip("facenormals.geometry")
+    problem = PoseProblem(batch=2, seed=2)
+    reference = levenberg_marquardt(problem.residual, problem.x0)
+    targets = problem.targets
+    problem.points, problem.intrinsics = problem.points.float(), problem.intrinsics.float()
+    problem.targets = targets.float()
+    result = levenberg_marquardt(problem.residual, problem.x0.float())
+    assert result.converged.all(), result.summary()
+    assert_close(result.cost.double(), reference.cost, rtol=1e-4, atol=0)
+
+
+def test_frozen_elements_and_inputs_untouched():
+    x0 = torch.tensor(ROSENBROCK_STARTS, dtype=F64, requires_grad=True)
+    x0_copy = x0.detach().clone()
+    result = levenberg_marquardt(rosenbrock, x0)
+    assert torch.equal(x0.detach(), x0_copy)
+    assert not result.x.requires_grad
+    for b, start in enumerate(ROSENBROCK_STARTS):
+        alone = levenberg_marquardt(rosenbrock, torch.tensor([start], dtype=F64))
+        assert torch.equal(alone.iterations[0], result.iterations[b])
+        assert_close(alone.x[0], result.x[b], rtol=1e-12, atol=1e-14)
+
+
+def test_verbose_and_repr(capsys):
+    x0 = torch.tensor([[-1.2, 1.0], [2.0, 2.0]], dtype=F64)
+    result = levenberg_marquardt(rosenbrock, x0, verbose=True)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == result.num_iterations
+    assert "mean cost" in lines[0] and "active 2/2" in lines[0]
+    assert "converged=2" in repr(result)
+    summary = result.summary()
+    assert "CONVERGED" in summary and "gradient norm below gtol" in summary
+
+
+# ---------------------------------------------------------------------------------------------
+# Input checks
+# ---------------------------------------------------------------------------------------------
+
+
+def test_nan_in_x0_raises():
+    x0 = torch.tensor([[1.0, float("nan")]], dtype=F64)
+    with pytest.raises(ValueError, match="x0"):
+        levenberg_marquardt(rosenbrock, x0)
+
+
+@pytest.mark.parametrize(
+    "x0",
+    [torch.zeros(2, dtype=F64), torch.zeros(1, 2, 2, dtype=F64), torch.zeros(2, 2, dtype=torch.long),
+     torch.zeros(0, 2, dtype=F64), [[0.0, 0.0]]],
+    ids=["rank1", "rank3", "integer", "empty", "list"],
+)
+def test_bad_x0_raises(x0):
+    with pytest.raises(ValueError, match="x0"):
+        levenberg_marquardt(rosenbrock, x0)
+
+
+@pytest.mark.parametrize(
+    "residual_fn",
+    [
+        lambda x: rosenbrock(x)[0],  # (M,)
+        lambda x: rosenbrock(x)[:1],  # wrong B
+        lambda x: rosenbrock(x)[..., None],  # (B, M, 1)
+        lambda x: rosenbrock(x).float(),  # wrong dtype
+        lambda x: rosenbrock(x).numpy(),  # not a tensor
+    ],
+    ids=["rank1", "batch", "rank3", "dtype", "numpy"],
+)
+def test_bad_residual_fn_raises(residual_fn):
+    x0 = torch.zeros(2, 2, dtype=F64)
+    with pytest.raises(ValueError, match="residual_fn"):
+        levenberg_marquardt(residual_fn, x0)
+
+
+@pytest.mark.parametrize(
+    "jacobian_fn",
+    [
+        lambda x: rosenbrock_jacobian(x).transpose(1, 2)[:, :1],  # (B, 1, 2): wrong M
+        lambda x: rosenbrock_jacobian(x)[:, :, :1],  # wrong P
+        lambda x: rosenbrock_jacobian(x)[0],  # missing batch
+        lambda x: rosenbrock_jacobian(x).float(),  # wrong dtype
+    ],
+    ids=["M", "P", "rank2", "dtype"],
+)
+def test_bad_jacobian_fn_raises(jacobian_fn):
+    x0 = torch.zeros(2, 2, dtype=F64)
+    with pytest.raises(ValueError, match="jacobian_fn"):
+        levenberg_marquardt(rosenbrock, x0, jacobian_fn=jacobian_fn)
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        ("damping_mode", "nielsen"),
+        ("jacobian_mode", "central"),
+        ("max_iterations", -1),
+        ("max_iterations", 2.5),
+        ("damping", -1.0),
+        ("ftol", math.nan),
+        ("min_damping", 0.0),
+        ("max_damping", 1e-20),
+    ],
+)
+def test_bad_options_raise(option, value):
+    with pytest.raises(ValueError, match=option):
+        levenberg_marquardt(rosenbrock, torch.zeros(1, 2, dtype=F64), **{option: value})
