@@ -1,0 +1,5 @@
+"""Mesh ops: vertex normals."""
+
+from facenormals.mesh.normals import VertexNormals, vertex_normals
+
+__all__ = ["VertexNormals", "vertex_normals"]
