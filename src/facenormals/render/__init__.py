@@ -1,5 +1,13 @@
-"""Software rasterisation of meshes into normal, depth and landmark maps."""
+"""Software rasterisation of meshes into normal and depth maps, and vertex visibility."""
 
+from facenormals.render.normal_map import render_normal_map
 from facenormals.render.rasterize import Fragments, interpolate_vertex_attributes, rasterize_triangles
+from facenormals.render.visibility import visible_vertices
 
-__all__ = ["Fragments", "interpolate_vertex_attributes", "rasterize_triangles"]
+__all__ = [
+    "Fragments",
+    "interpolate_vertex_attributes",
+    "rasterize_triangles",
+    "render_normal_map",
+    "visible_vertices",
+]

@@ -1,0 +1,66 @@
+import math
+
+import pytest
+import torch
+
+from facenormals.geometry import euler_to_rotation_matrix, project_points, transform_points
+from facenormals.mesh import vertex_normals
+from facenormals.models import builtin_head_model
+from facenormals.render import rasterize_triangles, render_normal_map, visible_vertices
+from facenormals.sampling import sample_bicubic
+
+
+@pytest.fixture(scope="module")
+def posed_head():
+    model = builtin_head_model(dtype=torch.float64)
+    vertices = model(torch.zeros(1, model.num_shape, dtype=torch.float64))
+    R = euler_to_rotation_matrix(torch.tensor([[0.05, 0.1, math.radians(35)]], dtype=torch.float64))
+    t = torch.tensor([[0.0, 0.0, 650.0]], dtype=torch.float64) @ R[0]
+    K = torch.tensor([[500.0, 95.5, 95.5]], dtype=torch.float64)
+    return model, vertices, R, t, K
+
+
+def test_normal_map_is_unit_on_foreground_and_zero_elsewhere(posed_head):
+    model, vertices, R, t, K = posed_head
+    nmap, frags = render_normal_map(vertices, model.faces, R, t, K, (192, 192))
+    norm = nmap.norm(dim=1)
+    assert torch.allclose(norm[frags.mask], torch.ones_like(norm[frags.mask]), atol=1e-9)
+    assert (nmap.permute(0, 2, 3, 1)[~frags.mask] == 0).all()
+    # visible surfaces face the camera: the normal points against the viewing ray
+    assert (nmap[:, 2][frags.mask] < 0.2).float().mean() > 0.99
+
+
+def test_normal_map_agrees_with_vertex_normals_at_visible_vertices(posed_head):
+    model, vertices, R, t, K = posed_head
+    nmap, frags = render_normal_map(vertices, model.faces, R, t, K, (192, 192))
+    pixels, depth = project_points(vertices, R, t, K)
+    normals = vertex_normals(vertices, model.faces) @ R.transpose(1, 2)
+    vis = visible_vertices(pixels, depth, normals, transform_points(vertices, R, t), frags.depth)
+    sampled, inside = sample_bicubic(nmap, pixels)
+    # away from the silhouette (all 4x4 taps on the foreground)
+    cos = torch.nn.functional.cosine_similarity(sampled, normals, dim=-1)
+    interior = vis & inside & (normals[..., 2] < -0.3)
+    angle = torch.rad2deg(torch.acos(cos[interior].clamp(-1, 1)))
+    assert interior.sum() > 1000
+    assert angle.median() < 1.5, angle.median()
+
+
+def test_visibility_hides_the_far_side(posed_head):
+    model, vertices, R, t, K = posed_head
+    pixels, depth = project_points(vertices, R, t, K)
+    zbuf = rasterize_triangles(pixels, depth, model.faces, (192, 192)).depth
+    normals = vertex_normals(vertices, model.faces) @ R.transpose(1, 2)
+    vis = visible_vertices(pixels, depth, normals, transform_points(vertices, R, t), zbuf)
+    lm = model.landmarks
+    # yaw +35 deg turns the face towards image left, showing the subject's left side
+    assert vis[0, lm["nose_tip"]] and vis[0, lm["left_ear_top"]]
+    assert not vis[0, lm["right_ear_top"]]
+    # the back of the head is hidden
+    back = vertices[0, :, 2] > 60
+    assert vis[0, back].float().mean() < 0.05
+
+
+def test_visibility_bad_input():
+    with pytest.raises(ValueError, match=r"zbuffer: expected shape \(B, H, W\) with B=1"):
+        visible_vertices(torch.zeros(1, 2, 2), torch.ones(1, 2), torch.zeros(1, 2, 3), torch.zeros(1, 2, 3),
+                         torch.zeros(2, 4, 4))

@@ -1,0 +1,60 @@
+"""The public names are recorded here, so removing or renaming one is a conscious act."""
+
+import importlib
+
+import pytest
+
+import facenormals
+
+PUBLIC = {
+    "facenormals.core": ["check_finite", "check_floating", "check_same_dims", "check_shape", "check_tensor"],
+    "facenormals.geometry": ["euler_rotation_derivatives", "euler_to_rotation_matrix", "project_points",
+                             "projection_jacobian", "rotation_matrix_to_euler", "transform_points"],
+    "facenormals.mesh": ["VertexNormals", "vertex_normals"],
+    "facenormals.models": ["BUILTIN_PARAMETERS", "LANDMARK_NAMES", "LANDMARK_PAIRS", "ModelFileError",
+                           "MorphableModel", "builtin_head_model", "find_ict_archive", "load_ict_npz", "load_model"],
+    "facenormals.sampling": ["sample_bicubic", "sample_bicubic_with_gradient"],
+    "facenormals.render": ["Fragments", "interpolate_vertex_attributes", "rasterize_triangles",
+                           "render_normal_map", "visible_vertices"],
+    "facenormals.energy": ["landmark_residuals", "normal_residuals", "prior_residuals"],
+    "facenormals.optim": ["LMResult", "LMStatus", "levenberg_marquardt"],
+    "facenormals.nn": ["NormalLandmarkUNet", "UNetOutput", "normal_landmark_loss"],
+}
+
+# The names the foundation issue makes binding: importable from the top level and their subpackage.
+BINDING = {
+    "MorphableModel": "facenormals.models",
+    "vertex_normals": "facenormals.mesh",
+    "VertexNormals": "facenormals.mesh",
+    "euler_to_rotation_matrix": "facenormals.geometry",
+    "rotation_matrix_to_euler": "facenormals.geometry",
+    "project_points": "facenormals.geometry",
+    "sample_bicubic": "facenormals.sampling",
+    "normal_residuals": "facenormals.energy",
+    "landmark_residuals": "facenormals.energy",
+    "prior_residuals": "facenormals.energy",
+    "levenberg_marquardt": "facenormals.optim",
+    "LMResult": "facenormals.optim",
+    "NormalLandmarkUNet": "facenormals.nn",
+}
+
+
+@pytest.mark.parametrize("module", sorted(PUBLIC))
+def test_subpackage_all(module):
+    mod = importlib.import_module(module)
+    assert sorted(mod.__all__) == sorted(PUBLIC[module])
+    assert list(mod.__all__) == sorted(mod.__all__), "__all__ is kept sorted"
+    for name in mod.__all__:
+        assert hasattr(mod, name)
+
+
+@pytest.mark.parametrize("name,module", sorted(BINDING.items()))
+def test_binding_names(name, module):
+    assert getattr(facenormals, name) is getattr(importlib.import_module(module), name)
+
+
+def test_top_level_all_is_sorted_and_importable():
+    assert list(facenormals.__all__) == sorted(facenormals.__all__)
+    assert len(set(facenormals.__all__)) == len(facenormals.__all__)
+    for name in facenormals.__all__:
+        assert hasattr(facenormals, name), name
