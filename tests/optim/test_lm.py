@@ -168,7 +168,6 @@ class PoseProblem:
 
 @pytest.mark.parametrize("jacobian_mode", JACOBIAN_MODES)
 def test_pose_from_landmarks_matches_scipy(jacobian_mode):
-    pytest.importorskip("facenormals.geometry")
     problem = PoseProblem(batch=3)
     result = levenberg_marquardt(problem.residual, problem.x0, jacobian_mode=jacobian_mode)
     assert result.converged.all(), result.summary()
@@ -179,6 +178,28 @@ def test_pose_from_landmarks_matches_scipy(jacobian_mode):
         np.testing.assert_allclose(result.x[b].numpy(), ref.x, rtol=1e-6, atol=1e-7)
     # The noise is small: the estimate is close to the true pose.
     assert_close(result.x[:, :3], problem.truth[:, :3], atol=2e-2, rtol=0)
+
+
+def test_float32_jacobian_dtype_reaches_the_float64_optimum():
+    problem = PoseProblem(batch=3, seed=2)
+    ref = levenberg_marquardt(problem.residual, problem.x0)
+    mixed = levenberg_marquardt(problem.residual, problem.x0, jacobian_dtype=torch.float32)
+    assert mixed.x.dtype == F64 and mixed.converged.all(), mixed.summary()
+    for b in range(3):
+        assert_same_optimum(mixed.cost[b].item(), ref.cost[b].item())
+    assert_close(mixed.x, ref.x, rtol=1e-5, atol=1e-5)
+
+    # an analytic jacobian_fn may return the Jacobian directly in jacobian_dtype
+    def jacobian_fn(x):
+        rows = [torch.func.jacfwd(lambda z, b=b: problem.residual(z[None], b)[0])(x[b]) for b in range(x.shape[0])]
+        return torch.stack(rows).float()
+
+    direct = levenberg_marquardt(problem.residual, problem.x0, jacobian_fn=jacobian_fn, jacobian_dtype=torch.float32)
+    assert_close(direct.cost, ref.cost, rtol=1e-9, atol=0)
+    with pytest.raises(ValueError, match="jacobian_fn output: expected dtype torch.float64"):
+        levenberg_marquardt(problem.residual, problem.x0, jacobian_fn=jacobian_fn)
+    with pytest.raises(ValueError, match="jacobian_dtype"):
+        levenberg_marquardt(problem.residual, problem.x0, jacobian_dtype=torch.int32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -375,7 +396,6 @@ def test_dtype_and_device_follow_x0(dtype, device):
 
 
 def test_pose_float32_converges():
-    pytest.importorskip("facenormals.geometry")
     problem = PoseProblem(batch=2, seed=2)
     reference = levenberg_marquardt(problem.residual, problem.x0)
     targets = problem.targets
