@@ -150,8 +150,8 @@ class NormalLandmarkUNet(nn.Module):
     Example:
         >>> net = NormalLandmarkUNet(num_landmarks=5, base_channels=4, depth=2)
         >>> out = net(torch.rand(1, 3, 8, 12))
-        >>> [tuple(t.shape) for t in out]
-        [(1, 3, 8, 12), (1, 5, 8, 12), (1, 1, 8, 12)]
+        >>> tuple(tuple(t.shape) for t in out)
+        ((1, 3, 8, 12), (1, 5, 8, 12), (1, 1, 8, 12))
         >>> out.normal_map().shape
         torch.Size([1, 3, 8, 12])
     """

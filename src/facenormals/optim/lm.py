@@ -287,8 +287,8 @@ def levenberg_marquardt(
         >>> result = levenberg_marquardt(lambda x: x @ A.T - b, torch.zeros(2, 2, dtype=torch.float64))
         >>> torch.allclose(result.x, torch.linalg.lstsq(A, b.T).solution.T)
         True
-        >>> [LMStatus(s).name for s in result.status.tolist()]
-        ['CONVERGED', 'CONVERGED']
+        >>> print(*(LMStatus(s).name for s in result.status.tolist()))
+        CONVERGED CONVERGED
     """
     _check_options(
         max_iterations, damping, damping_mode, ftol, xtol, gtol, min_damping, max_damping,

@@ -32,8 +32,9 @@ def render_normal_map(
     Args:
         vertices: mesh vertices in the model frame, mm.
         faces: triangles.
-        rotation, translation, intrinsics: the pose and ``(f, u0, v0)`` as in
-            :func:`~facenormals.geometry.project_points`.
+        rotation: rotation matrices ``(B, 3, 3)``, as in :func:`~facenormals.geometry.project_points`.
+        translation: translations ``(B, 3)`` in the model frame, mm.
+        intrinsics: ``(f, u0, v0)`` per view, ``(B, 3)``.
         image_size: ``(H, W)``.
         normals: optional model-frame vertex normals; computed with ``vertex_normals`` if omitted.
 
