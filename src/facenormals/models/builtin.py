@@ -4,7 +4,7 @@ The surface is a subdivided icosphere pushed out to a head-shaped radius functio
 and eyeballs, brow ridges, cheekbones, a nose with alae, lips, a chin and ears added as smooth
 radial displacements. Every feature is driven by an anthropometric parameter in millimetres; the
 shape components are the derivatives of the surface with respect to these parameters (central
-differences), so coefficient ``y_k`` is the deviation of parameter ``k`` from its mean in mm and
+differences over ±1σ), so coefficient ``y_k`` is the deviation of parameter ``k`` from its mean in mm and
 ``shape_std`` holds its standard deviation. The model is deterministic and built in a fraction of
 a second. It is a stand-in for a scanned model (ICT-FaceKit), not a replacement.
 """
@@ -54,8 +54,8 @@ BUILTIN_PARAMETERS: tuple[HeadParameter, ...] = (
     HeadParameter("cheek_fullness", 4.0, 2.0, "fullness of the cheeks"),
     HeadParameter("ear_length", 62.0, 4.0, "superaurale to subaurale"),
     HeadParameter("ear_protrusion", 20.0, 4.0, "how far the ear stands out"),
-    HeadParameter("ear_level", 12.0, 4.0, "ear centre below eye level"),
-    HeadParameter("ear_position", 8.0, 4.0, "ear centre behind the head's centre"),
+    HeadParameter("ear_level", 20.0, 3.0, "ear centre below eye level"),
+    HeadParameter("ear_position", 8.0, 3.0, "ear centre behind the head's centre"),
 )
 
 _SUBDIVISIONS = 5  # 10,242 vertices, 20,480 triangles
@@ -81,12 +81,8 @@ def _icosphere() -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(sphere.vertices, dtype=np.float64), np.asarray(sphere.faces, dtype=np.int64)
 
 
-def builtin_head_surface(directions: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """Head surface points for unit ``directions`` ``(N, 3)`` (model frame) and parameter values ``(P,)``.
-
-    Returns ``(N, 3)`` points in mm in the model frame (x to image right, y down, face along −z).
-    """
-    p = {spec.name: float(v) for spec, v in zip(BUILTIN_PARAMETERS, params)}
+def _base_surface(directions: np.ndarray, p: dict[str, float]) -> np.ndarray:
+    """The skull-like base surface before facial features, ``(N, 3)`` mm."""
     dx, dy, dz = directions.T
     up, fwd = -dy, -dz  # anatomical up and forward
     # Base: an egg-shaped ellipsoid, narrower at the jaw, with a sloping forehead and an occiput.
@@ -100,8 +96,23 @@ def builtin_head_surface(directions: np.ndarray, params: np.ndarray) -> np.ndarr
     a_fwd = np.where(fwd > 0, a_fwd * (1.0 - 0.12 * _smoothstep(-up / 0.9)), a_fwd)  # chin recedes less than jaw
     e = 2.4  # a superellipsoid: boxier than an ellipsoid, like a skull
     radius = ((np.abs(dx) / ax) ** e + (np.abs(up) / a_up) ** e + (np.abs(fwd) / a_fwd) ** e) ** (-1.0 / e)
-    base = radius[:, None] * directions
-    x, u, f = base[:, 0], -base[:, 1], -base[:, 2]
+    return radius[:, None] * directions
+
+
+def builtin_head_surface(directions: np.ndarray, params: np.ndarray, anchor: np.ndarray | None = None) -> np.ndarray:
+    """Head surface points for unit ``directions`` ``(N, 3)`` (model frame) and parameter values ``(P,)``.
+
+    Facial features are radial displacements placed by the coordinates of ``anchor`` (default: this
+    head's own base surface). The model uses the mean head's base as the anchor, so that changing
+    the skull's proportions scales the features' surroundings without sliding the features.
+
+    Returns ``(N, 3)`` points in mm in the model frame (x to image right, y down, face along −z).
+    """
+    p = {spec.name: float(v) for spec, v in zip(BUILTIN_PARAMETERS, params)}
+    base = _base_surface(directions, p)
+    if anchor is None:
+        anchor = base
+    x, u, f = anchor[:, 0], -anchor[:, 1], -anchor[:, 2]
 
     front = _smoothstep(f / 40.0)  # features only on the front of the face
     disp = np.zeros_like(x)
@@ -139,9 +150,10 @@ def builtin_head_surface(directions: np.ndarray, params: np.ndarray) -> np.ndarr
     ear_f = -p["ear_position"]
     half_len = 0.5 * p["ear_length"]
     half_wid = 0.55 * half_len
+    half_breadth = 0.5 * p["head_breadth"]
     lateral = _smoothstep((np.abs(x) - 0.6 * half_breadth) / (0.2 * half_breadth))
     rho = np.sqrt(((u - ear_u) / half_len) ** 2 + ((f - ear_f) / half_wid) ** 2)
-    flap = 1.0 / (1.0 + np.exp((rho - 0.95) / 0.07))
+    flap = 1.0 / (1.0 + np.exp((rho - 0.95) / 0.12))
     rim = _gauss((rho, 0.8, 0.12))
     bowl = _gauss((rho, 0.25, 0.3))
     tilt = 0.75 + 0.25 * np.clip(-(f - ear_f) / half_wid, -1.0, 1.0)  # the back edge stands out more
@@ -155,15 +167,25 @@ def _build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
     directions, faces = _icosphere()
     mean_params = np.array([spec.mean for spec in BUILTIN_PARAMETERS])
     std = np.array([spec.std for spec in BUILTIN_PARAMETERS])
-    mean = builtin_head_surface(directions, mean_params)
+    anchor = _base_surface(directions, {spec.name: spec.mean for spec in BUILTIN_PARAMETERS})
+    mean = builtin_head_surface(directions, mean_params, anchor)
     basis = np.empty((len(BUILTIN_PARAMETERS), *mean.shape))
     for k in range(len(BUILTIN_PARAMETERS)):
+        # Secant over ±1σ rather than the derivative at the mean: moving a sharp feature (an ear's
+        # rim, the mouth line) then blends two bounded positions instead of producing spikes.
         step = np.zeros_like(mean_params)
-        step[k] = 0.05 * std[k]
-        plus = builtin_head_surface(directions, mean_params + step)
-        minus = builtin_head_surface(directions, mean_params - step)
+        step[k] = std[k]
+        plus = builtin_head_surface(directions, mean_params + step, anchor)
+        minus = builtin_head_surface(directions, mean_params - step, anchor)
         basis[k] = (plus - minus) / (2.0 * step[k])
     return directions, faces, mean, basis, std
+
+
+def _face_region(mean: np.ndarray) -> np.ndarray:
+    """The face area: the front of the head between the ears, from the brows to below the chin."""
+    p = {spec.name: spec.mean for spec in BUILTIN_PARAMETERS}
+    x, up, fwd = mean[:, 0], -mean[:, 1], -mean[:, 2]
+    return (fwd > 20.0) & (np.abs(x) < 0.42 * p["head_breadth"]) & (up < 30.0) & (up > -p["face_height"] - 5.0)
 
 
 def builtin_head_model(dtype: torch.dtype = torch.float32) -> MorphableModel:
@@ -189,4 +211,5 @@ def builtin_head_model(dtype: torch.dtype = torch.float32) -> MorphableModel:
             "license": "MIT",
             "shape_components": [spec.name for spec in BUILTIN_PARAMETERS],
         },
+        face_region=torch.from_numpy(_face_region(mean)),
     )

@@ -10,7 +10,14 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["IBUG68_OF_LANDMARK", "LANDMARK_NAMES", "LANDMARK_PAIRS", "builtin_landmark_indices"]
+__all__ = [
+    "IBUG68_OF_LANDMARK",
+    "ICT_EAR_VERTICES",
+    "LANDMARK_NAMES",
+    "LANDMARK_PAIRS",
+    "builtin_landmark_indices",
+    "ict_landmark_indices",
+]
 
 #: The 24 landmark names, in channel order of the landmark map Z.
 LANDMARK_NAMES: tuple[str, ...] = (
@@ -31,6 +38,24 @@ IBUG68_OF_LANDMARK: dict[str, int] = {
     "right_mouth_corner": 48, "left_mouth_corner": 54, "upper_lip": 51, "lower_lip": 57,
     "chin": 8, "right_jaw_angle": 3, "left_jaw_angle": 13,
 }  # fmt: skip
+
+
+#: ICT-FaceKit ear vertices, picked by ``scripts/ict_ear_landmarks.py`` (rerun it to reproduce them):
+#: the highest, lowest and most anterior mid-height vertex of the auricle, found as the connected
+#: region standing out sideways behind the jaw line.
+ICT_EAR_VERTICES: dict[str, int] = {
+    "right_ear_top": 7571, "right_ear_lobe": 7472, "right_ear_tragus": 7547,
+    "left_ear_top": 6844, "left_ear_lobe": 6745, "left_ear_tragus": 6820,
+}  # fmt: skip
+
+
+def ict_landmark_indices(ibug68: Sequence[int]) -> dict[str, int]:
+    """The 24 landmarks of ICT-FaceKit: iBUG points where they exist, the scripted ear vertices otherwise."""
+    if len(ibug68) != 68:
+        raise ValueError(f"ibug68: expected 68 vertex indices, got {len(ibug68)}")
+    out = {name: int(ibug68[i]) for name, i in IBUG68_OF_LANDMARK.items()}
+    out.update(ICT_EAR_VERTICES)
+    return {name: out[name] for name in LANDMARK_NAMES}
 
 
 def _mirror_pairs(names: Sequence[str]) -> list[tuple[str, str]]:

@@ -41,6 +41,8 @@ class MorphableModel(nn.Module):
         expression_names: optional names of the expression blendshapes.
         name: a short name shown in ``repr`` and saved with the model.
         metadata: JSON-serialisable extra information (source, licence, ...).
+        face_region: optional ``(N,)`` bool mask of the face area used by evaluation (default: all
+            vertices).
 
     Raises:
         ValueError: if the arrays have inconsistent shapes or indices are out of range.
@@ -63,6 +65,7 @@ class MorphableModel(nn.Module):
     faces: Tensor
     expression_basis: Tensor
     landmark_indices: Tensor
+    face_region: Tensor
 
     def __init__(
         self,
@@ -75,6 +78,7 @@ class MorphableModel(nn.Module):
         expression_names: Sequence[str] | None = None,
         name: str = "model",
         metadata: Mapping[str, object] | None = None,
+        face_region: Tensor | None = None,
     ) -> None:
         super().__init__()
         mean, shape_basis, faces = (torch.as_tensor(x) for x in (mean, shape_basis, faces))
@@ -111,6 +115,12 @@ class MorphableModel(nn.Module):
             raise ValueError(
                 f"expression_names: expected {expression_basis.shape[0]} names, got {len(names)}"
             )
+        if face_region is None:
+            face_region = torch.ones(num_vertices, dtype=torch.bool)
+        face_region = torch.as_tensor(face_region)
+        check_shape(face_region, ["N"], "face_region", dims)
+        if face_region.dtype != torch.bool:
+            raise ValueError(f"face_region: expected a bool tensor, got dtype {face_region.dtype}")
         self.name = name
         self.metadata = dict(metadata or {})
         self.landmark_names = list(landmarks)
@@ -123,6 +133,7 @@ class MorphableModel(nn.Module):
         self.register_buffer(
             "landmark_indices", torch.tensor([int(i) for i in landmarks.values()], dtype=torch.long)
         )
+        self.register_buffer("face_region", face_region.contiguous())
 
     @property
     def num_vertices(self) -> int:
@@ -174,6 +185,16 @@ class MorphableModel(nn.Module):
         noise = torch.randn(batch, self.num_shape, generator=generator, dtype=self.shape_std.dtype)
         return noise.to(self.shape_std.device) * (scale * self.shape_std)
 
+    def export_mesh(self, path: str | Path, shape_coeffs: Tensor | None = None) -> None:
+        """Write the mean head, or the head with ``shape_coeffs`` ``(K,)``/``(1, K)``, as ``.ply`` or ``.obj``."""
+        from facenormals.mesh.io import save_mesh
+
+        if shape_coeffs is None:
+            vertices = self.mean
+        else:
+            vertices = self(shape_coeffs.reshape(1, -1).to(self.mean))[0]
+        save_mesh(path, vertices, self.faces)
+
     def extra_repr(self) -> str:
         return (
             f"name={self.name!r}, vertices={self.num_vertices}, faces={self.faces.shape[0]}, "
@@ -196,6 +217,7 @@ class MorphableModel(nn.Module):
             "landmark_names": np.array(self.landmark_names, dtype=str),
             "landmark_indices": self.landmark_indices.cpu().numpy(),
             "metadata": np.array(json.dumps(self.metadata)),
+            "face_region": self.face_region.cpu().numpy(),
         }
         with open(path, "wb") as handle:
             np.savez(handle, **arrays)
@@ -240,6 +262,7 @@ class MorphableModel(nn.Module):
                 expression_names=[str(n) for n in arrays.get("expression_names", [])] or None,
                 name=str(arrays.get("name", path.stem)),
                 metadata=json.loads(str(arrays.get("metadata", "{}"))),
+                face_region=torch.from_numpy(arrays["face_region"].astype(bool)) if "face_region" in arrays else None,
             )
         except ValueError as error:
             raise ModelFileError(f"{path}: inconsistent model arrays: {error}") from error

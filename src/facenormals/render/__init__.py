@@ -2,6 +2,7 @@
 
 from facenormals.render.normal_map import render_normal_map
 from facenormals.render.rasterize import Fragments, interpolate_vertex_attributes, rasterize_triangles
+from facenormals.render.shading import render_shaded, shade_normal_map
 from facenormals.render.visibility import visible_vertices
 
 __all__ = [
@@ -9,5 +10,7 @@ __all__ = [
     "interpolate_vertex_attributes",
     "rasterize_triangles",
     "render_normal_map",
+    "render_shaded",
+    "shade_normal_map",
     "visible_vertices",
 ]

@@ -1,0 +1,69 @@
+"""Reading and writing triangle meshes (``.ply``, ``.obj``, ... through trimesh)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_shape
+
+__all__ = ["load_mesh", "save_mesh"]
+
+
+def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
+    """Write a mesh; the format follows the extension (``.ply``, ``.obj``, ``.stl``, ``.off``, ``.glb``).
+
+    Args:
+        path: output file; its folder is created.
+        vertices: ``(N, 3)`` or ``(1, N, 3)`` vertices (mm).
+        faces: ``(F, 3)`` triangles.
+
+    Returns:
+        The path written.
+
+    Example:
+        >>> import tempfile, os
+        >>> out = save_mesh(os.path.join(tempfile.mkdtemp(), "t.ply"), torch.eye(3), torch.tensor([[0, 1, 2]]))
+        >>> out.suffix
+        '.ply'
+    """
+    import trimesh
+
+    if isinstance(vertices, Tensor) and vertices.dim() == 3:
+        check_shape(vertices, [1, "N", 3], "vertices")
+        vertices = vertices[0]
+    check_shape(vertices, ["N", 3], "vertices")
+    check_shape(faces, ["F", 3], "faces")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh = trimesh.Trimesh(
+        vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy().astype(np.int64), process=False
+    )
+    mesh.export(path)
+    return path
+
+
+def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """Read a triangle mesh as ``(vertices (N, 3), faces (F, 3))`` without reordering vertices.
+
+    Raises:
+        ValueError: naming the file when it is missing, unreadable or not a triangle mesh.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: mesh file not found")
+    try:
+        mesh = trimesh.load(path, process=False, force="mesh")
+    except Exception as error:  # trimesh raises many types for corrupt files
+        raise ValueError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from error
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0 or len(mesh.faces) == 0:
+        raise ValueError(f"{path}: not a triangle mesh with vertices and faces")
+    vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype)
+    if not bool(torch.isfinite(vertices).all()):
+        raise ValueError(f"{path}: mesh has NaN or infinite vertex coordinates")
+    return vertices, torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)

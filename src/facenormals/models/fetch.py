@@ -1,0 +1,145 @@
+"""Fetch ICT-FaceKit into the cache: ``facenormals models fetch ict [--from DIR]``.
+
+The public repository (https://github.com/ICT-VGL/ICT-FaceKit, MIT licence) is downloaded as a zip,
+or read from a local copy, and its ``FaceXModel/`` folder is converted into
+``cache_dir()/ict/ict_face_head.npz``, where :func:`facenormals.models.find_ict_archive` finds it.
+"""
+
+from __future__ import annotations
+
+import http.client
+import os
+import tempfile
+import urllib.error
+import urllib.request
+from pathlib import Path, PurePosixPath
+from typing import Callable
+from urllib.parse import urlparse
+
+import numpy as np
+
+from facenormals.models.ict import ict_npz_from_raw
+from facenormals.models.morphable import ModelFileError
+from facenormals.models.registry import ICT_ARCHIVE, cache_dir
+
+__all__ = ["ICT_URL", "FetchError", "fetch_ict"]
+
+#: The zip of the repository's default branch, as GitHub serves it.
+ICT_URL = "https://github.com/ICT-VGL/ICT-FaceKit/archive/refs/heads/master.zip"
+FROM_HINT = "facenormals models fetch ict --from DIR"
+_CHUNK = 1 << 20
+
+
+class FetchError(ModelFileError, OSError):
+    """Downloading a model failed (no network, HTTP error, interrupted transfer). Both a
+    :class:`ModelFileError` and an :class:`OSError`; the message says how to fetch from a local copy."""
+
+
+def _zip_name(url: str) -> str:
+    stem = PurePosixPath(urlparse(url).path).name or "download.zip"
+    return stem if stem.startswith("ICT-FaceKit") else f"ICT-FaceKit-{stem}"
+
+
+def _download(url: str, target: Path, timeout: float, progress: Callable[[str], object] | None) -> None:
+    """Stream ``url`` into ``target`` through a temporary file in the same folder (renamed at the end)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    handle = tempfile.NamedTemporaryFile(dir=target.parent, prefix=f".{target.name}.", suffix=".part", delete=False)
+    try:
+        with handle:
+            request = urllib.request.Request(url, headers={"User-Agent": "facenormals"})
+            with urllib.request.urlopen(request, timeout=timeout) as response:
+                total = int(response.headers.get("Content-Length") or 0)
+                done, reported = 0, -1
+                while True:
+                    chunk = response.read(_CHUNK)
+                    if not chunk:
+                        break
+                    handle.write(chunk)
+                    done += len(chunk)
+                    step = done * 10 // total if total else done // (50 * _CHUNK)
+                    if progress is not None and step != reported:
+                        reported = step
+                        size = f"{done / 1e6:.0f} / {total / 1e6:.0f} MB" if total else f"{done / 1e6:.0f} MB"
+                        progress(f"  {size}")
+                if total and done < total:
+                    raise http.client.IncompleteRead(b"", total - done)
+        os.replace(handle.name, target)
+    except BaseException as error:
+        Path(handle.name).unlink(missing_ok=True)
+        if isinstance(error, (OSError, http.client.HTTPException, ValueError)):
+            reason = getattr(error, "reason", None) or error
+            raise FetchError(
+                f"could not download ICT-FaceKit from {url} ({type(error).__name__}: {reason}); "
+                f"download it elsewhere (the repository zip or a clone of https://github.com/ICT-VGL/ICT-FaceKit) "
+                f"and run `{FROM_HINT}`"
+            ) from error
+        raise
+
+
+def _report_partial(archive: Path, progress: Callable[[str], object] | None) -> None:
+    if progress is None:
+        return
+    with np.load(archive, allow_pickle=False) as data:
+        identities, expressions = data["identity_basis"].shape[0], data["expression_basis"].shape[0]
+    note = "" if (identities, expressions) == (100, 53) else " (partial copy: the full model has 100 and 53)"
+    progress(f"wrote {archive}: {identities} identity modes, {expressions} expressions{note}")
+
+
+def fetch_ict(
+    source: str | Path | None = None,
+    cache: Path | None = None,
+    url: str = ICT_URL,
+    progress: Callable[[str], object] | None = print,
+    force: bool = False,
+    timeout: float = 30.0,
+) -> Path:
+    """Put the converted ICT-FaceKit archive into the cache and return its path.
+
+    The archive is ``<cache>/ict/ict_face_head.npz`` (the layout of :func:`ict_npz_from_raw`), where
+    :func:`facenormals.models.find_ict_archive` looks. If it is already there it is returned at once.
+
+    Args:
+        source: a local copy to convert instead of downloading (``--from DIR``): the repository folder
+            containing ``FaceXModel/``, the ``FaceXModel`` folder itself, a folder holding one extracted
+            repository, or the repository's ``.zip``. A partial copy is converted as far as it goes
+            (identity modes ``identity000...`` up to the first missing one, the expressions present).
+        cache: the cache root; default :func:`facenormals.models.registry.cache_dir`
+            (``$FACENORMALS_HOME``, else ``~/.cache/facenormals``).
+        url: the repository zip downloaded when ``source`` is ``None``; the zip is kept in
+            ``<cache>/ict/`` and reused by later calls.
+        progress: called with one line of text per step; ``None`` for silence.
+        force: rebuild the archive (and re-download the zip) even if cached.
+        timeout: socket timeout of the download, seconds.
+
+    Raises:
+        FetchError: if the download fails (no network, HTTP error, ...); the message names ``--from``.
+            It is both a :class:`ModelFileError` and an :class:`OSError`.
+        ModelFileError: if the source or the downloaded zip is not a readable ICT-FaceKit copy.
+    """
+    say = progress if progress is not None else (lambda _message: None)
+    folder = Path(cache if cache is not None else cache_dir()) / "ict"
+    archive = folder / ICT_ARCHIVE
+    if archive.is_file() and not force:
+        say(f"ICT-FaceKit is already in {archive}")
+        return archive
+    if source is not None:
+        say(f"converting ICT-FaceKit from {source}")
+        ict_npz_from_raw(source, archive)
+        _report_partial(archive, progress)
+        return archive
+    zip_path = folder / _zip_name(url)
+    if force or not zip_path.is_file():
+        say(f"downloading ICT-FaceKit from {url}")
+        _download(url, zip_path, timeout, progress)
+    else:
+        say(f"using the downloaded {zip_path}")
+    say(f"converting {zip_path}")
+    try:
+        ict_npz_from_raw(zip_path, archive)
+    except ModelFileError as error:
+        raise ModelFileError(
+            f"{error}; delete {zip_path} (or pass force=True / --force) to download it again, "
+            f"or run `{FROM_HINT}` with a local copy"
+        ) from error
+    _report_partial(archive, progress)
+    return archive
