@@ -33,6 +33,59 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _describe(model) -> list[str]:
+    std = model.shape_std
+    lines = [
+        f"name          {model.name}",
+        f"vertices      {model.num_vertices}",
+        f"triangles     {model.faces.shape[0]}",
+        f"shape         {model.num_shape} components (sigma {float(std.min()):.3g} .. {float(std.max()):.3g})",
+        f"expressions   {model.num_expressions}",
+        f"landmarks     {len(model.landmark_names)}",
+        f"face region   {int(model.face_region.sum())} vertices",
+    ]
+    for key in ("source", "license", "file"):
+        if key in model.metadata:
+            lines.append(f"{key:<13} {model.metadata[key]}")
+    return lines
+
+
+def _cmd_models(args: argparse.Namespace) -> int:
+    from facenormals.models import find_ict_archive, load_model
+    from facenormals.models.registry import cache_dir
+
+    if args.action == "list":
+        archive = find_ict_archive()
+        rows = [("builtin", "built into the package (procedural head)")]
+        rows.append(("ict", str(archive) if archive else "not installed: run `facenormals models fetch ict`"))
+        for name, where in rows:
+            line = f"{name:<9} {where}"
+            if name == "builtin" or archive is not None:
+                model = load_model(name)
+                line += (f"\n          {model.num_vertices} vertices, {model.num_shape} shape components, "
+                         f"{model.num_expressions} expressions, {len(model.landmark_names)} landmarks; "
+                         f"{model.metadata.get('source', '')}")
+            print(line)
+        print(f"cache: {cache_dir()}  (any facenormals .npz model also loads with --model PATH)")
+        return 0
+    if args.action == "show":
+        model = load_model(args.name)
+        print("\n".join(_describe(model)))
+        print("landmarks:")
+        for name, index in model.landmarks.items():
+            print(f"  {name:<20} vertex {index}")
+        return 0
+    if args.action == "fetch":
+        from facenormals.models.fetch import fetch_ict
+
+        if args.name != "ict":
+            raise ValueError(f"name: only 'ict' can be fetched, got {args.name!r}")
+        path = fetch_ict(source=args.source, force=args.force)
+        print(f"ICT-FaceKit is ready: {path}")
+        return 0
+    raise ValueError(f"unknown action {args.action!r}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facenormals", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -41,6 +94,17 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--out", default="out/demo", help="output folder for demo_fit.ply")
     demo.set_defaults(func=_cmd_demo)
+
+    models = sub.add_parser("models", help="list, show or fetch morphable models")
+    actions = models.add_subparsers(dest="action", required=True)
+    actions.add_parser("list", help="the models available here")
+    show = actions.add_parser("show", help="vertices, components, landmarks and source of a model")
+    show.add_argument("name", help="ict, builtin or a model .npz path")
+    fetch = actions.add_parser("fetch", help="download and convert a model into the cache")
+    fetch.add_argument("name", choices=["ict"])
+    fetch.add_argument("--from", dest="source", default=None, help="convert a local copy (folder or zip) instead")
+    fetch.add_argument("--force", action="store_true", help="rebuild even if cached")
+    models.set_defaults(func=_cmd_models)
     return parser
 
 

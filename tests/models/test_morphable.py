@@ -126,10 +126,7 @@ def test_ict_npz(ict_npz):
     raw = np.load(ict_npz)
     # cm -> mm and OpenGL -> model frame (x, -y, -z)
     assert_close(model.mean, torch.from_numpy(raw["mean"] * np.array([10.0, -10.0, -10.0], dtype=np.float32)))
-    nose = model.mean[model.landmarks["ibug_30"]]
-    landmark_z = model.landmark_vertices(model.mean[None])[0, :, 2]
-    assert nose[2] == landmark_z.min()  # the nose tip is the most forward (−z) landmark
-    assert nose[2] < model.mean[:, 2].min() + 1.0  # ... and within 1 mm of the most forward vertex
-    left_eye, right_eye = model.mean[model.landmarks["ibug_36"]], model.mean[model.landmarks["ibug_45"]]
-    assert left_eye[0] < 0 < right_eye[0]  # subject's right eye is on image left
-    assert left_eye[1] < model.mean[model.landmarks["ibug_08"], 1]  # chin is below the eyes (y down)
+    assert int(model.face_region.sum()) == int(raw["face_vertex_count"])
+    assert model.metadata["landmarks_ibug68"] == raw["landmarks_ibug68"].tolist()
+    nose = model.mean[model.landmarks["nose_tip"]]
+    assert nose[2] < model.mean[:, 2].min() + 1.0  # within 1 mm of the most forward vertex

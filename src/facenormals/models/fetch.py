@@ -8,7 +8,6 @@ or read from a local copy, and its ``FaceXModel/`` folder is converted into
 from __future__ import annotations
 
 import http.client
-import os
 import tempfile
 import urllib.error
 import urllib.request
@@ -18,7 +17,7 @@ from urllib.parse import urlparse
 
 import numpy as np
 
-from facenormals.models.ict import ict_npz_from_raw
+from facenormals.models.ict import _publish, ict_npz_from_raw
 from facenormals.models.morphable import ModelFileError
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
 
@@ -63,7 +62,7 @@ def _download(url: str, target: Path, timeout: float, progress: Callable[[str], 
                         progress(f"  {size}")
                 if total and done < total:
                     raise http.client.IncompleteRead(b"", total - done)
-        os.replace(handle.name, target)
+        _publish(handle.name, target)
     except BaseException as error:
         Path(handle.name).unlink(missing_ok=True)
         if isinstance(error, (OSError, http.client.HTTPException, ValueError)):

@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from facenormals.models.landmarks import ict_landmark_indices
 from facenormals.models.morphable import ModelFileError, MorphableModel
 
 __all__ = ["ict_npz_from_raw", "load_ict_npz", "load_ict_raw", "opengl_to_model_frame"]
@@ -58,8 +59,10 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
     """Load the converted ICT-FaceKit archive (``ict_face_head.npz``, see ``shared/data/README.md``).
 
     The archive is in centimetres in an OpenGL-style frame; the model is returned in millimetres in the
-    library's model frame. Identity coefficients have unit variance (``shape_std = 1``). The 68 iBUG
-    landmarks are attached as ``ibug_00`` ... ``ibug_67``.
+    library's model frame. Identity coefficients have unit variance (``shape_std = 1``). The paper's 24
+    landmarks are attached (iBUG points and scripted ear vertices, see ``docs/models.md``); the 68 iBUG
+    indices are kept in ``metadata["landmarks_ibug68"]``. The face region is ICT's region #0 (the first
+    9,409 vertices).
 
     Args:
         path: the ``.npz`` file.
@@ -93,17 +96,33 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
         num_shape = available
     if not 1 <= num_shape <= available:
         raise ValueError(f"num_shape: expected 1..{available}, got {num_shape}")
-    landmarks = {f"ibug_{i:02d}": int(v) for i, v in enumerate(arrays["landmarks_ibug68"])}
+    arrays["identity_basis"] = arrays["identity_basis"][:num_shape]
+    return _ict_model(arrays, scale, dtype, str(path))
+
+
+def _ict_model(arrays: dict, scale: float, dtype: torch.dtype, file: str) -> MorphableModel:
+    """The :class:`MorphableModel` of ICT arrays in the archive's units and OpenGL-style frame; shared by
+    :func:`load_ict_npz` and :func:`load_ict_raw` so that both give the same model."""
+
+    def to_model(key: str) -> torch.Tensor:
+        return torch.from_numpy(opengl_to_model_frame(np.asarray(arrays[key]), scale)).to(dtype)
+
+    ibug68 = [int(v) for v in arrays["landmarks_ibug68"]]
+    num_vertices = np.asarray(arrays["mean"]).shape[0]
+    face_count = int(arrays.get("face_vertex_count", ICT_FACE_VERTEX_COUNT))
+    face_region = torch.zeros(num_vertices, dtype=torch.bool)
+    face_region[:face_count] = True
     return MorphableModel(
-        torch.from_numpy(opengl_to_model_frame(arrays["mean"], scale)).to(dtype),
-        torch.from_numpy(opengl_to_model_frame(arrays["identity_basis"][:num_shape], scale)).to(dtype),
-        torch.from_numpy(arrays["faces"].astype(np.int64)),
-        expression_basis=torch.from_numpy(opengl_to_model_frame(arrays["expression_basis"], scale)).to(dtype),
-        landmarks=landmarks,
+        to_model("mean"),
+        to_model("identity_basis"),
+        torch.from_numpy(np.asarray(arrays["faces"]).astype(np.int64)),
+        expression_basis=to_model("expression_basis"),
+        landmarks=ict_landmark_indices(ibug68),
         expression_names=[str(n) for n in arrays["expression_names"]],
         name="ict",
         metadata={"source": "ICT-FaceKit (USC ICT), face + head-and-neck regions", "license": "MIT",
-                  "file": str(path)},
+                  "file": file, "landmarks_ibug68": ibug68},
+        face_region=face_region,
     )
 
 
@@ -303,14 +322,14 @@ def _identity_names(source: _FaceXSource, num_shape: int | None) -> list[str]:
     while present in numbers:
         present += 1
     if num_shape is None:
-        if present == 0:
-            raise ModelFileError(f"{source.label('identity000.obj')}: file not found (no identity modes)")
         beyond = [n for n in numbers if n > present]
         if beyond:
             raise ModelFileError(
                 f"{source.label(f'identity{present:03d}.obj')}: file not found, although identity{beyond[0]:03d}.obj "
                 "is present (incomplete copy?)"
             )
+        if present == 0:
+            raise ModelFileError(f"{source.label('identity000.obj')}: file not found (no identity modes)")
         num_shape = present
     elif num_shape < 1:
         raise ValueError(f"num_shape: expected at least 1 (or None for all), got {num_shape}")
@@ -383,8 +402,8 @@ def load_ict_raw(
     ``.obj`` per expression and ``vertex_indices.json``. Identity modes are ``identityNNN.obj`` minus the
     neutral mesh, with unit-variance coefficients (``shape_std = 1``); expression blendshapes are
     ``<name>.obj`` minus the neutral mesh, for the names listed under ``"expressions"`` in
-    ``vertex_indices.json`` whose file is present (all 53 in the full model). The 68 iBUG landmarks of
-    ``"idx_to_landmark_verts"`` are attached as ``ibug_00`` ... ``ibug_67``. Only the face and
+    ``vertex_indices.json`` whose file is present (all 53 in the full model). The 24 landmarks are built
+    from the 68 iBUG landmarks of ``"idx_to_landmark_verts"`` as in :func:`load_ict_npz`. Only the face and
     head-and-neck regions are kept (11,248 vertices, 22,288 triangles), converted from centimetres to
     millimetres and from the OpenGL-style frame to the library's model frame. The result equals
     :func:`load_ict_npz` on the converted archive.
@@ -405,19 +424,16 @@ def load_ict_raw(
         ValueError: if ``num_shape < 1``.
     """
     raw = _read_ict_raw(folder, num_shape)
-    scale = 10.0  # cm -> mm
-    landmarks = {f"ibug_{i:02d}": int(v) for i, v in enumerate(raw["landmarks_ibug68"])}
-    return MorphableModel(
-        torch.from_numpy(opengl_to_model_frame(raw["mean"], scale)).to(dtype),
-        torch.from_numpy(opengl_to_model_frame(raw["identity_basis"], scale)).to(dtype),
-        torch.from_numpy(raw["faces"]),
-        expression_basis=torch.from_numpy(opengl_to_model_frame(raw["expression_basis"], scale)).to(dtype),
-        landmarks=landmarks,
-        expression_names=raw["expression_names"],
-        name="ict",
-        metadata={"source": "ICT-FaceKit (USC ICT), face + head-and-neck regions", "license": "MIT",
-                  "file": raw["location"]},
-    )
+    return _ict_model(raw, 10.0, dtype, raw["location"])  # cm -> mm
+
+
+def _publish(temporary: str | Path, target: Path) -> None:
+    """Give a finished temporary file the usual permissions (it was created 0600) and rename it to
+    ``target`` atomically."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(temporary, 0o666 & ~umask)
+    os.replace(temporary, target)
 
 
 def ict_npz_from_raw(folder: str | Path, out_path: str | Path, num_shape: int | None = None) -> Path:
@@ -459,7 +475,7 @@ def ict_npz_from_raw(folder: str | Path, out_path: str | Path, num_shape: int | 
     try:
         with handle:
             np.savez(handle, **arrays)
-        os.replace(handle.name, out_path)
+        _publish(handle.name, out_path)
     except BaseException:
         Path(handle.name).unlink(missing_ok=True)
         raise

@@ -103,7 +103,7 @@ def builtin_landmark_indices(mean: np.ndarray, parameters) -> dict[str, int]:
         out[f"{tag}_ear_lobe"] = _nearest(mean, ear, (-(ear_u - 0.85 * half_len), -ear_f), (1, 2))
         out[f"{tag}_ear_tragus"] = _nearest(mean, ear, (-(ear_u - 0.1 * half_len), -(ear_f + 0.8 * 0.55 * half_len)), (1, 2))
     out["nose_bridge"] = _nearest(mean, front, (0.0, -4.0), (0, 1))
-    out["nose_tip"] = int(np.argmax(np.where(np.abs(x) < 5.0, fwd, -np.inf)))
+    out["nose_tip"] = int(np.argmax(np.where(np.abs(x) < 0.5, fwd, -np.inf)))
     out["subnasale"] = _nearest(mean, front & (np.abs(x) < 3.0) & (up < tip_u - 4.0), (0.0, -(tip_u - 9.0)), (0, 1))
     out["upper_lip"] = _nearest(mean, front, (0.0, -(mouth_u + 5.0)), (0, 1))
     out["lower_lip"] = _nearest(mean, front, (0.0, -(mouth_u - 6.0)), (0, 1))

@@ -1,0 +1,305 @@
+"""ICT-FaceKit: the raw FaceXModel loader, the conversion to the archive, and fetching into the cache."""
+
+from __future__ import annotations
+
+import io
+import shutil
+import urllib.error
+import urllib.request
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from facenormals.models import LANDMARK_NAMES
+
+from facenormals.models import ModelFileError, find_ict_archive
+from facenormals.models import fetch as fetch_module
+from facenormals.models.fetch import FetchError, fetch_ict
+from facenormals.models.ict import ict_npz_from_raw, load_ict_npz, load_ict_raw, opengl_to_model_frame
+
+ICT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "ict_facekit"
+RAW_SUBSET = ICT_DIR / "raw_subset" / "FaceXModel"
+
+
+@pytest.fixture
+def ict_raw() -> Path:
+    """The shared FaceXModel subset (neutral, identity000, identity001, jawOpen, vertex_indices.json)."""
+    if not (RAW_SUBSET / "generic_neutral_mesh.obj").exists():
+        pytest.skip(f"shared raw ICT-FaceKit subset not found at {RAW_SUBSET}")
+    return RAW_SUBSET
+
+
+@pytest.fixture
+def raw_copy(ict_raw, tmp_path) -> Path:
+    """A writable copy of the subset, laid out as a repository: ``<tmp>/repo/FaceXModel``."""
+    target = tmp_path / "repo" / "FaceXModel"
+    shutil.copytree(ict_raw, target)
+    for path in target.iterdir():
+        path.chmod(0o644)
+    return target
+
+
+@pytest.fixture(scope="module")
+def raw_model():
+    if not (RAW_SUBSET / "generic_neutral_mesh.obj").exists():
+        pytest.skip(f"shared raw ICT-FaceKit subset not found at {RAW_SUBSET}")
+    return load_ict_raw(RAW_SUBSET, dtype=torch.float64)
+
+
+# --- load_ict_raw ---------------------------------------------------------------------------------
+
+
+def test_raw_subset_loads(raw_model):
+    assert raw_model.name == "ict"
+    assert (raw_model.num_vertices, raw_model.faces.shape[0]) == (11248, 22288)
+    assert (raw_model.num_shape, raw_model.num_expressions) == (2, 1)
+    assert raw_model.expression_names == ["jawOpen"]
+    assert raw_model.landmark_names == list(LANDMARK_NAMES)
+    assert len(raw_model.metadata["landmarks_ibug68"]) == 68
+    assert raw_model.mean.dtype == torch.float64
+    assert torch.equal(raw_model.shape_std, torch.ones(2, dtype=torch.float64))
+
+
+def test_raw_subset_agrees_with_npz(raw_model, ict_npz):
+    npz = load_ict_npz(ict_npz, dtype=torch.float64)
+    assert torch.equal(raw_model.faces, npz.faces)
+    # the archive stores float32 centimetres; 1e-4 mm is far below its resolution
+    torch.testing.assert_close(raw_model.mean, npz.mean, rtol=0, atol=1e-4)
+    torch.testing.assert_close(raw_model.shape_basis, npz.shape_basis[:2], rtol=0, atol=1e-5)
+    jaw = npz.expression_names.index("jawOpen")
+    torch.testing.assert_close(raw_model.expression_basis[0], npz.expression_basis[jaw], rtol=0, atol=1e-5)
+    assert raw_model.landmarks == npz.landmarks
+    assert raw_model.metadata["license"] == "MIT"
+
+
+def test_raw_model_frame_and_units(raw_model, ict_raw):
+    """mm and y down: the first OBJ vertex (cm, +y up, +z out of the face) maps by (x, -y, -z) * 10."""
+    lines = (ict_raw / "generic_neutral_mesh.obj").read_text().splitlines()
+    first = next(line for line in lines if line.startswith("v "))
+    xyz = np.array([float(v) for v in first.split()[1:4]])
+    np.testing.assert_allclose(raw_model.mean[0].numpy(), opengl_to_model_frame(xyz, 10.0), atol=1e-9)
+    # chin below the eyes (y down), nose tip in front of the ears (face along -z)
+    lm = raw_model.landmarks
+    assert raw_model.mean[lm["chin"], 1] > raw_model.mean[lm["right_eye_outer"], 1]
+    assert raw_model.mean[lm["nose_tip"], 2] < raw_model.mean[lm["right_ear_tragus"], 2]
+
+
+def test_raw_dtype_and_repo_root(ict_raw):
+    model = load_ict_raw(ict_raw.parent, num_shape=1)  # the folder containing FaceXModel/
+    assert model.mean.dtype == torch.float32 and model.num_shape == 1
+
+
+def test_num_shape_larger_than_present_raises(ict_raw):
+    with pytest.raises(ModelFileError, match=r"num_shape=3 but only 2 identity files"):
+        load_ict_raw(ict_raw, num_shape=3)
+    with pytest.raises(ValueError, match="num_shape"):
+        load_ict_raw(ict_raw, num_shape=0)
+
+
+def test_missing_folder_and_files(tmp_path, raw_copy):
+    with pytest.raises(ModelFileError, match="not found"):
+        load_ict_raw(tmp_path / "nowhere")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ModelFileError, match="not an ICT-FaceKit folder: no generic_neutral_mesh.obj"):
+        load_ict_raw(empty)
+    (raw_copy / "vertex_indices.json").unlink()
+    with pytest.raises(ModelFileError, match="vertex_indices.json"):
+        load_ict_raw(raw_copy)
+
+
+def test_identity_gap_raises(raw_copy):
+    (raw_copy / "identity000.obj").unlink()
+    with pytest.raises(ModelFileError, match=r"identity000\.obj.*identity001\.obj"):
+        load_ict_raw(raw_copy)
+
+
+def test_truncated_obj_names_the_file(raw_copy):
+    path = raw_copy / "identity001.obj"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 10])
+    with pytest.raises(ModelFileError, match=r"identity001\.obj: has \d+ vertices, expected 26719"):
+        load_ict_raw(raw_copy)
+
+
+def test_obj_truncated_in_faces_names_the_file(raw_copy):
+    path = raw_copy / "jawOpen.obj"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 2000])
+    with pytest.raises(ModelFileError, match=r"jawOpen\.obj.*polygons"):
+        load_ict_raw(raw_copy)
+
+
+def test_unparsable_vertex_line_names_file_and_line(raw_copy):
+    path = raw_copy / "generic_neutral_mesh.obj"
+    lines = path.read_bytes().split(b"\n")
+    index = next(i for i, line in enumerate(lines) if line.startswith(b"v "))
+    lines[index + 5] = b"v 1.0 oops 2.0"
+    path.write_bytes(b"\n".join(lines))
+    with pytest.raises(ModelFileError, match=rf"generic_neutral_mesh\.obj: line {index + 6}: cannot parse vertex"):
+        load_ict_raw(raw_copy)
+
+
+def test_unparsable_face_line_names_the_file(raw_copy):
+    path = raw_copy / "generic_neutral_mesh.obj"
+    data = path.read_bytes().replace(b"\nf ", b"\nf x/1 ", 1)
+    path.write_bytes(data)
+    with pytest.raises(ModelFileError, match=r"generic_neutral_mesh\.obj: line \d+: cannot parse face"):
+        load_ict_raw(raw_copy)
+
+
+def test_obj_with_texture_normal_indices_and_crlf(raw_copy, raw_model):
+    """``f a/b/c`` and ``a//c`` forms and Windows line ends parse to the same model."""
+    path = raw_copy / "generic_neutral_mesh.obj"
+    text = path.read_bytes().replace(b"\n", b"\r\n")
+    out = []
+    for line in text.split(b"\r\n"):
+        if line.startswith(b"f "):
+            line = b"f " + b" ".join(t.split(b"/")[0] + b"//7" for t in line.split()[1:])
+        out.append(line)
+    path.write_bytes(b"\r\n".join(out))
+    model = load_ict_raw(raw_copy, dtype=torch.float64)
+    assert torch.equal(model.faces, raw_model.faces)
+    assert torch.equal(model.mean, raw_model.mean)
+
+
+# --- ict_npz_from_raw -----------------------------------------------------------------------------
+
+
+def test_npz_from_raw_round_trips(ict_raw, raw_model, tmp_path):
+    out = ict_npz_from_raw(ict_raw, tmp_path / "sub" / "ict_face_head.npz")
+    assert out == tmp_path / "sub" / "ict_face_head.npz" and out.is_file()
+    assert [p.name for p in out.parent.iterdir()] == ["ict_face_head.npz"]  # no temporary left
+    model = load_ict_npz(out, dtype=torch.float64)
+    assert torch.equal(model.faces, raw_model.faces)
+    torch.testing.assert_close(model.mean, raw_model.mean, rtol=0, atol=1e-4)
+    torch.testing.assert_close(model.shape_basis, raw_model.shape_basis, rtol=0, atol=1e-5)
+    torch.testing.assert_close(model.expression_basis, raw_model.expression_basis, rtol=0, atol=1e-5)
+    assert model.expression_names == ["jawOpen"] and model.landmarks == raw_model.landmarks
+
+
+def test_npz_from_raw_matches_shared_layout(ict_raw, ict_npz, tmp_path):
+    out = ict_npz_from_raw(ict_raw, tmp_path / "ict.npz")
+    with np.load(out) as mine, np.load(ict_npz) as shared:
+        assert sorted(mine.files) == sorted(shared.files)
+        for key in shared.files:
+            assert mine[key].dtype.kind == shared[key].dtype.kind, key
+        assert str(mine["units"]) == "cm" and int(mine["face_vertex_count"]) == int(shared["face_vertex_count"])
+        np.testing.assert_array_equal(mine["faces"], shared["faces"])
+        np.testing.assert_array_equal(mine["landmarks_ibug68"], shared["landmarks_ibug68"])
+        np.testing.assert_allclose(mine["mean"], shared["mean"], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(mine["identity_basis"], shared["identity_basis"][:2], rtol=0, atol=1e-6)
+        jaw = list(shared["expression_names"]).index("jawOpen")
+        np.testing.assert_allclose(mine["expression_basis"][0], shared["expression_basis"][jaw], rtol=0, atol=1e-6)
+
+
+def test_npz_from_raw_failure_leaves_nothing(raw_copy, tmp_path):
+    (raw_copy / "identity000.obj").write_text("v 1 2 3\n")
+    out = tmp_path / "out" / "ict.npz"
+    with pytest.raises(ModelFileError, match="identity000.obj"):
+        ict_npz_from_raw(raw_copy, out)
+    assert not out.exists()
+    assert not out.parent.exists() or list(out.parent.iterdir()) == []
+
+
+# --- fetch_ict --------------------------------------------------------------------------------------
+
+
+def test_fetch_from_source_into_cache(ict_raw, tmp_path, monkeypatch):
+    monkeypatch.setenv("FACENORMALS_HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("FACENORMALS_ICT", raising=False)
+    messages: list[str] = []
+    archive = fetch_ict(ict_raw.parent, progress=messages.append)  # the repository root
+    assert archive == tmp_path / "home" / "ict" / "ict_face_head.npz" and archive.is_file()
+    assert find_ict_archive() == archive
+    assert load_ict_npz(archive).num_shape == 2
+    assert any("partial" in m for m in messages)
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("a cached archive must not be rebuilt")
+
+    monkeypatch.setattr(fetch_module, "ict_npz_from_raw", no_work)
+    stamp = archive.stat().st_mtime_ns
+    assert fetch_ict(ict_raw, progress=messages.append) == archive
+    assert archive.stat().st_mtime_ns == stamp
+
+
+def test_fetch_force_rebuilds(ict_raw, tmp_path):
+    archive = fetch_ict(ict_raw, cache=tmp_path, progress=None)  # the FaceXModel folder itself
+    archive.write_bytes(b"stale")
+    assert fetch_ict(ict_raw, cache=tmp_path, progress=None) == archive and archive.read_bytes() == b"stale"
+    fetch_ict(ict_raw, cache=tmp_path, progress=None, force=True)
+    assert load_ict_npz(archive).num_vertices == 11248
+
+
+def test_fetch_without_network_names_from(tmp_path, monkeypatch):
+    def offline(*args, **kwargs):
+        raise urllib.error.URLError("[Errno -3] Temporary failure in name resolution")
+
+    monkeypatch.setattr(urllib.request, "urlopen", offline)
+    with pytest.raises(FetchError, match="--from") as info:
+        fetch_ict(cache=tmp_path, progress=None)
+    assert isinstance(info.value, ModelFileError) and isinstance(info.value, OSError)
+    assert "could not download ICT-FaceKit" in str(info.value) and "name resolution" in str(info.value)
+    leftovers = list((tmp_path / "ict").iterdir()) if (tmp_path / "ict").exists() else []
+    assert leftovers == []
+
+
+class _FakeResponse(io.BytesIO):
+    def __init__(self, payload: bytes, length: int | None = None) -> None:
+        super().__init__(payload)
+        self.headers = {"Content-Length": str(len(payload) if length is None else length)}
+
+
+def _repo_zip(folder: Path) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        archive.writestr("ICT-FaceKit-master/README.md", "ICT-FaceKit")
+        for path in sorted(folder.iterdir()):
+            archive.write(path, f"ICT-FaceKit-master/FaceXModel/{path.name}")
+    return buffer.getvalue()
+
+
+def test_fetch_downloads_converts_and_keeps_zip(ict_raw, tmp_path, monkeypatch):
+    payload = _repo_zip(ict_raw)
+    calls = []
+
+    def serve(request, timeout=None):
+        calls.append((request.full_url, timeout))
+        return _FakeResponse(payload)
+
+    monkeypatch.setattr(urllib.request, "urlopen", serve)
+    archive = fetch_ict(cache=tmp_path, progress=None)
+    assert calls == [(fetch_module.ICT_URL, 30.0)]
+    assert sorted(p.name for p in (tmp_path / "ict").iterdir()) == ["ICT-FaceKit-master.zip", "ict_face_head.npz"]
+    assert load_ict_npz(archive).num_shape == 2
+    # the kept zip is reused when the archive is rebuilt
+    monkeypatch.setattr(urllib.request, "urlopen", lambda *a, **k: pytest.fail("downloaded twice"))
+    archive.unlink()
+    assert fetch_ict(cache=tmp_path, progress=None) == archive and archive.is_file()
+
+
+def test_fetch_interrupted_download_leaves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(urllib.request, "urlopen", lambda *a, **k: _FakeResponse(b"PK\x03\x04abc", length=10_000))
+    with pytest.raises(FetchError, match="--from"):
+        fetch_ict(cache=tmp_path, progress=None)
+    assert list((tmp_path / "ict").iterdir()) == []
+
+
+def test_fetch_corrupt_cached_zip(tmp_path, monkeypatch):
+    (tmp_path / "ict").mkdir()
+    (tmp_path / "ict" / "ICT-FaceKit-master.zip").write_bytes(b"<html>not a zip</html>")
+    monkeypatch.setattr(urllib.request, "urlopen", lambda *a, **k: pytest.fail("must not download"))
+    with pytest.raises(ModelFileError, match=r"ICT-FaceKit-master\.zip.*not a valid zip"):
+        fetch_ict(cache=tmp_path, progress=None)
+    assert not (tmp_path / "ict" / "ict_face_head.npz").exists()
+
+
+def test_fetch_from_bad_source_leaves_no_archive(raw_copy, tmp_path):
+    (raw_copy / "jawOpen.obj").write_text("v 0 0 0\n")
+    with pytest.raises(ModelFileError, match=r"jawOpen\.obj"):
+        fetch_ict(raw_copy, cache=tmp_path / "cache", progress=None)
+    assert not (tmp_path / "cache" / "ict" / "ict_face_head.npz").exists()
