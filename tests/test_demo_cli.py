@@ -27,3 +27,38 @@ def test_cli_bad_model_path_is_a_clear_error(tmp_path, capsys):
 def test_cli_requires_a_command():
     with pytest.raises(SystemExit):
         main([])
+
+
+def test_models_list_and_show(capsys):
+    assert main(["models", "list"]) == 0
+    out = capsys.readouterr().out
+    assert "builtin" in out and "ict" in out
+    assert main(["models", "show", "builtin"]) == 0
+    out = capsys.readouterr().out
+    assert "vertices      10242" in out and "right_ear_top" in out and "source" in out
+
+
+def test_models_fetch_without_network_names_from(tmp_path, monkeypatch, capsys):
+    import urllib.error
+    import urllib.request
+
+    def offline(*args, **kwargs):
+        raise urllib.error.URLError("no network")
+
+    monkeypatch.setenv("FACENORMALS_HOME", str(tmp_path))
+    monkeypatch.setattr(urllib.request, "urlopen", offline)
+    assert main(["models", "fetch", "ict"]) == 1
+    assert "--from" in capsys.readouterr().err
+    assert not any(p.suffix == ".part" for p in tmp_path.rglob("*"))
+
+
+def test_models_fetch_from_local_copy(tmp_path, monkeypatch, capsys):
+    from tests.conftest import SHARED_DATA
+
+    raw = SHARED_DATA / "ict_facekit" / "raw_subset" / "FaceXModel"
+    if not raw.exists():
+        pytest.skip("raw ICT subset not available")
+    monkeypatch.setenv("FACENORMALS_HOME", str(tmp_path))
+    assert main(["models", "fetch", "ict", "--from", str(raw)]) == 0
+    assert (tmp_path / "ict" / "ict_face_head.npz").exists()
+    assert "ready" in capsys.readouterr().out
