@@ -35,17 +35,58 @@ def find_ict_archive() -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
-def load_model(spec: str = "auto", dtype: torch.dtype = torch.float32) -> MorphableModel:
-    """Load a model by name or path.
+def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
+    """Dispatch a model file to its loader by extension (and, for ``.mat``/``.npz``, by its keys)."""
+    from facenormals.models import formats
+
+    if not path.is_file():
+        raise ModelFileError(f"{path}: model file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        import zipfile
+
+        try:
+            with zipfile.ZipFile(path) as archive:
+                names = {n.removesuffix(".npy") for n in archive.namelist()}
+        except (zipfile.BadZipFile, OSError) as error:
+            raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
+        if "identity_basis" in names and "format" not in names:
+            return load_ict_npz(path, dtype=dtype)
+        return MorphableModel.load(path, dtype=dtype)
+    if suffix == ".mat":
+        import scipy.io
+
+        try:
+            names = {entry[0] for entry in scipy.io.whosmat(path)}
+        except Exception:  # v7.3 (HDF5) files and corrupt files: let the loaders report
+            names = set()
+        if "shapeMU" in names:
+            return formats.load_bfm2009(path, dtype=dtype)
+        return formats.load_lyhm(path, dtype=dtype)
+    if suffix in (".h5", ".hdf5"):
+        return formats.load_bfm2017(path, dtype=dtype)
+    if suffix in (".pkl", ".pickle"):
+        return formats.load_flame(path, dtype=dtype)
+    raise ModelFileError(
+        f"{path}: unknown model format {suffix!r}; expected .npz (facenormals or ICT archive), "
+        ".mat (LYHM, BFM 2009), .h5 (BFM 2017) or .pkl (FLAME)"
+    )
+
+
+def load_model(spec: str | Path = "auto", dtype: torch.dtype = torch.float32) -> MorphableModel:
+    """Load a model by name or path: bring your own model in one call.
 
     Args:
         spec: ``"ict"`` (fails if the archive is not found), ``"builtin"``, ``"auto"`` (ICT when found,
-            otherwise built-in) or a path to a model saved with :meth:`MorphableModel.save`.
+            otherwise built-in) or a path: a facenormals ``.npz`` (:meth:`MorphableModel.save`), the
+            ICT-FaceKit archive, LYHM or BFM 2009 ``.mat``, BFM 2017 ``.h5`` or FLAME ``.pkl``.
         dtype: floating dtype of the model's buffers.
 
     Raises:
         ModelFileError: if ``"ict"`` is requested but not found, or the file cannot be read.
     """
+    if isinstance(spec, Path):
+        return _load_path(spec, dtype)
     if spec in ("auto", "ict"):
         archive = find_ict_archive()
         if archive is not None:
@@ -58,4 +99,4 @@ def load_model(spec: str = "auto", dtype: torch.dtype = torch.float32) -> Morpha
         return builtin_head_model(dtype=dtype)
     if spec == "builtin":
         return builtin_head_model(dtype=dtype)
-    return MorphableModel.load(spec, dtype=dtype)
+    return _load_path(Path(spec), dtype)
