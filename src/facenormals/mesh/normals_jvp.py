@@ -1,0 +1,162 @@
+r"""Analytic forward-mode derivatives of the paper's vertex normals along fixed directions.
+
+For a morphable model :math:`X = X_0 + W y` the fitting needs :math:`\partial n_i / \partial y_k`
+for every vertex and every shape component. With :math:`c_f = (v_1 - v_0) \times (v_2 - v_0)`,
+:math:`m_f = c_f / \lVert c_f \rVert`, :math:`s_i = \sum_{f \ni i} m_f` and
+:math:`n_i = s_i / \lVert s_i \rVert` (the ``"ring"`` estimator of
+:func:`~facenormals.mesh.vertex_normals`), a tangent :math:`\dot v` gives
+
+.. math::
+
+    \dot c_f = \dot e_1 \times e_2 + e_1 \times \dot e_2, \quad
+    \dot m_f = \frac{(I - m_f m_f^\top)\,\dot c_f}{\lVert c_f \rVert}, \quad
+    \dot n_i = \frac{(I - n_i n_i^\top) \sum_{f \ni i} \dot m_f}{\lVert s_i \rVert}.
+
+All ``K`` tangents are pushed at once; for a fixed basis the tangent edge differences
+:math:`\dot e_1, \dot e_2` are precomputed by :class:`VertexNormalsJacobian`. This is exact (it
+equals ``torch.func.jvp`` of ``vertex_normals``) and several times cheaper than vmapped autograd.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from facenormals.core.check import check_floating, check_shape
+
+__all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
+
+
+def _tangent_edges(tangents: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
+    """Edge differences of ``K`` tangents ``(K, N, 3)`` in the layout ``(F, 3, K)``."""
+    rows = tangents.permute(1, 2, 0)  # (N, 3, K)
+    t0, t1, t2 = (rows[faces[:, k]] for k in range(3))
+    return (t1 - t0).contiguous(), (t2 - t0).contiguous()
+
+
+def _jvp_one(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float) -> tuple[Tensor, Tensor]:
+    """One mesh ``(N, 3)`` with tangent edges ``(F, 3, K)`` → normals ``(N, 3)``, Jacobian ``(N, 3, K)``.
+
+    Rows (faces, vertices) hold ``3 K`` contiguous numbers, so the scatter into vertices is a row-wise
+    ``index_add`` and products are fused with ``addcmul``: the K-fold work is a few passes over memory.
+    """
+    num_vertices = vertices.shape[0]
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    e1, e2 = v1 - v0, v2 - v0  # (F, 3)
+    c = torch.linalg.cross(e1, e2)
+    c_norm = c.norm(dim=1, keepdim=True).clamp_min(eps)  # (F, 1)
+    m = c / c_norm
+    d_c = torch.empty_like(d_e1)
+    for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
+        # (ė1 × e2 + e1 × ė2)_i = ė1_j e2_k − ė1_k e2_j + e1_j ė2_k − e1_k ė2_j
+        out = d_c[:, i]
+        torch.mul(d_e1[:, j], e2[:, k : k + 1], out=out)
+        out.addcmul_(d_e1[:, k], e2[:, j : j + 1], value=-1.0)
+        out.addcmul_(d_e2[:, k], e1[:, j : j + 1])
+        out.addcmul_(d_e2[:, j], e1[:, k : k + 1], value=-1.0)
+    along = d_c[:, 0] * m[:, 0:1]  # m · ċ, (F, K)
+    along.addcmul_(d_c[:, 1], m[:, 1:2]).addcmul_(d_c[:, 2], m[:, 2:3])
+    d_m = d_c.addcmul_(m.unsqueeze(-1), along.unsqueeze(1), value=-1.0).div_(c_norm.unsqueeze(-1))
+    s = vertices.new_zeros(num_vertices, 3)
+    d_s = vertices.new_zeros(num_vertices, 3, d_e1.shape[-1])
+    for k in range(3):
+        s.index_add_(0, faces[:, k], m)
+        d_s.index_add_(0, faces[:, k], d_m)
+    s_norm = s.norm(dim=1, keepdim=True).clamp_min(eps)  # (N, 1)
+    n = s / s_norm
+    along = d_s[:, 0] * n[:, 0:1]
+    along.addcmul_(d_s[:, 1], n[:, 1:2]).addcmul_(d_s[:, 2], n[:, 2:3])
+    d_n = d_s.addcmul_(n.unsqueeze(-1), along.unsqueeze(1), value=-1.0).div_(s_norm.unsqueeze(-1))
+    return n, d_n
+
+
+def _jvp(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float) -> tuple[Tensor, Tensor]:
+    """Batched: tangent edges ``(F, 3, K)`` shared, or ``(B, F, 3, K)`` per element."""
+    outputs = [
+        _jvp_one(vertices[b], faces, d_e1 if d_e1.dim() == 3 else d_e1[b], d_e2 if d_e2.dim() == 3 else d_e2[b], eps)
+        for b in range(vertices.shape[0])
+    ]
+    return torch.stack([o[0] for o in outputs]), torch.stack([o[1] for o in outputs])
+
+
+def _check(vertices: Tensor, faces: Tensor) -> dict[str, int]:
+    dims = check_shape(vertices, ["B", "N", 3], "vertices")
+    check_floating(vertices, "vertices")
+    check_shape(faces, ["F", 3], "faces")
+    if torch.is_floating_point(faces) or faces.dtype == torch.bool:
+        raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
+    return dims
+
+
+def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: float = 1e-12) -> tuple[Tensor, Tensor]:
+    r"""Ring vertex normals and their directional derivatives along ``K`` vertex tangents.
+
+    Args:
+        vertices: mesh vertices.
+        faces: triangles, counter-clockwise seen from outside.
+        tangents: ``K`` directions of vertex motion, shared by the batch ``(K, N, 3)`` or per
+            element ``(B, K, N, 3)`` (e.g. the shape basis :math:`W_k`).
+        eps: the clamp of the norms, as in :func:`~facenormals.mesh.vertex_normals`.
+
+    Returns:
+        ``(normals, jacobian)``: the normals ``(B, N, 3)`` and, in Jacobian layout ``(B, N, 3, K)``,
+        ``jacobian[b, i, :, k]`` :math:`= \partial n_i / \partial \text{tangent}_k`.
+
+    Example:
+        >>> v = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+        >>> t = torch.zeros(1, 3, 3); t[0, 0, 2] = 1.0  # lift vertex 0 along +z
+        >>> n, dn = vertex_normals_jvp(v, torch.tensor([[0, 1, 2]]), t)
+        >>> n[0, 0].tolist(), dn[0, 0, :, 0].tolist()
+        ([0.0, 0.0, 1.0], [1.0, 1.0, 0.0])
+    """
+    dims = _check(vertices, faces)
+    if tangents.dim() == 3:
+        check_shape(tangents, ["K", dims["N"], 3], "tangents")
+    else:
+        check_shape(tangents, ["B", "K", dims["N"], 3], "tangents", dims)
+    faces = faces.to(device=vertices.device, dtype=torch.long)
+    tangents = tangents.to(vertices.dtype)
+    if tangents.dim() == 3:
+        d_e1, d_e2 = _tangent_edges(tangents, faces)
+    else:
+        edges = [_tangent_edges(t, faces) for t in tangents]
+        d_e1, d_e2 = torch.stack([e[0] for e in edges]), torch.stack([e[1] for e in edges])
+    return _jvp(vertices, faces, d_e1, d_e2, eps)
+
+
+class VertexNormalsJacobian(nn.Module):
+    r"""Ring vertex normals and :math:`\partial n / \partial y` for a fixed basis ``(K, N, 3)``.
+
+    Precomputes the basis' edge differences once, so each call costs two cross products per face
+    and component. See :func:`vertex_normals_jvp`.
+
+    Shape:
+        - forward: vertices :math:`(B, N, 3)` → normals :math:`(B, N, 3)`, Jacobian :math:`(B, N, 3, K)`
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> model = builtin_head_model()
+        >>> jac = VertexNormalsJacobian(model.faces, model.shape_basis)
+        >>> n, dn = jac(model(torch.zeros(1, model.num_shape)))
+        >>> tuple(dn.shape)
+        (1, 10242, 3, 24)
+    """
+
+    def __init__(self, faces: Tensor, basis: Tensor, eps: float = 1e-12) -> None:
+        super().__init__()
+        check_shape(faces, ["F", 3], "faces")
+        check_shape(basis, ["K", "N", 3], "basis")
+        check_floating(basis, "basis")
+        faces = faces.to(torch.long)
+        d_e1, d_e2 = _tangent_edges(basis, faces)
+        self.eps = eps
+        self.register_buffer("faces", faces, persistent=False)
+        self.register_buffer("d_e1", d_e1.contiguous(), persistent=False)
+        self.register_buffer("d_e2", d_e2.contiguous(), persistent=False)
+
+    def forward(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
+        _check(vertices, self.faces)
+        return _jvp(vertices, self.faces, self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype), self.eps)
+
+    def extra_repr(self) -> str:
+        return f"faces={self.faces.shape[0]}, components={self.d_e1.shape[-1]}"
