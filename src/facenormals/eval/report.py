@@ -1,0 +1,410 @@
+"""The evaluation protocol: rough alignment, ICP, errors, and their summary over a data set.
+
+:func:`evaluate_reconstruction` scores a predicted mesh against a reference scan or mesh, twice:
+after a **rigid** and after a **similarity** alignment (the latter forgives a wrong overall size).
+Each alignment is
+
+1. a closed-form fit (:func:`~facenormals.eval.align.fit_similarity`) of corresponding points:
+   the six landmarks :data:`~facenormals.eval.align.DEFAULT_ALIGNMENT_LANDMARKS`, caller-given
+   index pairs, or, for meshes of the same topology given nothing else, all face-region
+   vertices;
+2. refined by point-to-plane ICP (:func:`~facenormals.eval.icp.icp_point_to_plane`) of the
+   prediction's vertices onto the reference face region and its vertex normals, each reference
+   vertex paired with the nearest prediction vertex (``direction="target_to_source"``, so the
+   rest of the predicted head does not pull), pairs farther apart than ``icp_max_distance``
+   (default 10 mm) left out of the fit (not out of the errors);
+3. scored over the reference face region by the errors of :mod:`facenormals.eval.metrics`:
+   point-to-plane RMSE against the prediction's surface, per-vertex correspondence RMSE when the
+   topologies agree (ICP errors can flatter a reconstruction that slides along the surface), and
+   absolute depth-error statistics along the frontal viewing direction over the face-region
+   vertices that face the viewer (reference normal · viewing direction < 0, as a depth map would
+   see them; grazing and back-facing vertices make depth differences meaningless). The
+   correspondence errors use the same (ICP-refined) transform as the other errors.
+
+:func:`summarise` averages the reports of a data set and divides by a baseline (the paper's
+tables compare against the mean head).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.eval.align import DEFAULT_ALIGNMENT_LANDMARKS, fit_similarity, landmark_correspondences
+from facenormals.eval.icp import icp_point_to_plane
+from facenormals.eval.metrics import (
+    DepthStatistics,
+    _check_faces,
+    correspondence_errors,
+    depth_errors,
+    depth_statistics,
+    point_to_plane_errors,
+)
+from facenormals.mesh.normals import vertex_normals
+
+__all__ = ["AlignmentResult", "EvaluationReport", "evaluate_reconstruction", "summarise"]
+
+#: Metrics of :meth:`AlignmentResult.as_dict` averaged by :func:`summarise`.
+SUMMARY_METRICS = (
+    "point_to_plane_rmse", "correspondence_rmse", "depth_mean", "depth_std", "depth_median",
+    "depth_delta90", "depth_coverage", "scale", "icp_iterations",
+)  # fmt: skip
+#: The error metrics divided by the baseline in :func:`summarise`.
+RATIO_METRICS = (
+    "point_to_plane_rmse", "correspondence_rmse", "depth_mean", "depth_std", "depth_median", "depth_delta90",
+)  # fmt: skip
+ALIGNMENTS = ("rigid", "similarity")
+
+
+@dataclass(frozen=True)
+class AlignmentResult:
+    """Errors (mm) of a prediction after one kind of alignment; the transform maps the prediction
+    into the reference frame, ``aligned = scale · rotation · p + translation``."""
+
+    point_to_plane_rmse: float
+    correspondence_rmse: float | None
+    depth: DepthStatistics
+    scale: float
+    rotation: Tensor
+    translation: Tensor
+    icp_iterations: int
+    icp_converged: bool
+
+    def as_dict(self) -> dict[str, object]:
+        """Plain JSON-serialisable values; the depth statistics flattened as ``depth_*``."""
+        out: dict[str, object] = {
+            "point_to_plane_rmse": self.point_to_plane_rmse,
+            "correspondence_rmse": self.correspondence_rmse,
+        }
+        out.update({f"depth_{k}": v for k, v in self.depth.as_dict().items()})
+        out.update(
+            scale=self.scale,
+            icp_iterations=self.icp_iterations,
+            icp_converged=self.icp_converged,
+            rotation=self.rotation.tolist(),
+            translation=self.translation.tolist(),
+        )
+        return out
+
+
+@dataclass(frozen=True)
+class EvaluationReport:
+    """The result of :func:`evaluate_reconstruction`.
+
+    Attributes:
+        rigid: errors after rigid alignment.
+        similarity: errors after similarity alignment.
+        same_topology: whether correspondence errors were computed.
+        num_points: reference face-region vertices scored.
+        num_alignment_points: corresponding points of the rough alignment.
+    """
+
+    rigid: AlignmentResult
+    similarity: AlignmentResult
+    same_topology: bool
+    num_points: int
+    num_alignment_points: int
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "same_topology": self.same_topology,
+            "num_points": self.num_points,
+            "num_alignment_points": self.num_alignment_points,
+            "rigid": self.rigid.as_dict(),
+            "similarity": self.similarity.as_dict(),
+        }
+
+    def __str__(self) -> str:
+        rows = [
+            ("point-to-plane RMSE", "point_to_plane_rmse", "mm"),
+            ("correspondence RMSE", "correspondence_rmse", "mm"),
+            ("depth |dz| mean", "depth_mean", "mm"),
+            ("depth |dz| std", "depth_std", "mm"),
+            ("depth |dz| median", "depth_median", "mm"),
+            ("depth |dz| delta90", "depth_delta90", "mm"),
+            ("depth points", "depth_count", ""),
+            ("depth coverage", "depth_coverage", ""),
+            ("scale", "scale", ""),
+            ("ICP iterations", "icp_iterations", ""),
+        ]
+        data = {a: getattr(self, a).as_dict() for a in ALIGNMENTS}
+        lines = [f"{'':<22}{'rigid':>12}{'similarity':>12}", "-" * 50]
+        for label, key, unit in rows:
+            cells = [_format(data[a][key]) for a in ALIGNMENTS]
+            lines.append(f"{label:<22}{cells[0]:>12}{cells[1]:>12}  {unit}".rstrip())
+        lines.append(f"({self.num_points} reference points, {self.num_alignment_points} alignment points)")
+        return "\n".join(lines)
+
+
+def _format(value: object) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, int):
+        return str(value)
+    return f"{float(value):.4f}" if abs(float(value)) < 10 else f"{float(value):.2f}"
+
+
+def _landmarks_of(x: object) -> Mapping[str, int] | None:
+    if isinstance(x, Mapping):
+        return x
+    landmarks = getattr(x, "landmarks", None)
+    return landmarks if isinstance(landmarks, Mapping) else None
+
+
+def _resolve_pairs(
+    correspondences: object,
+    same_topology: bool,
+    region: Tensor,
+    num_prediction: int,
+    num_reference: int,
+    landmark_names: Sequence[str],
+) -> Tensor:
+    """Index pairs ``(K, 2)`` = ``(prediction vertex, reference vertex)`` of the rough alignment."""
+    if correspondences is None:
+        if not same_topology:
+            raise ValueError(
+                "correspondences: required when the meshes do not share a topology "
+                "(index pairs (K, 2), or landmark mappings / models for both meshes)"
+            )
+        index = torch.nonzero(region).reshape(-1)
+        return torch.stack([index, index], dim=1)
+    single = _landmarks_of(correspondences)
+    if single is not None:
+        if not same_topology:
+            raise ValueError(
+                "correspondences: one landmark mapping needs meshes of the same topology; "
+                "pass (prediction_landmarks, reference_landmarks)"
+            )
+        return landmark_correspondences(single, single, landmark_names)
+    if isinstance(correspondences, (tuple, list)) and len(correspondences) == 2:
+        both = [_landmarks_of(c) for c in correspondences]
+        if both[0] is not None and both[1] is not None:
+            return landmark_correspondences(both[0], both[1], landmark_names)
+    pairs = torch.as_tensor(correspondences)
+    check_shape(pairs, ["K", 2], "correspondences")
+    if pairs.dtype.is_floating_point or pairs.dtype == torch.bool:
+        raise ValueError(f"correspondences: expected integer index pairs, got dtype {pairs.dtype}")
+    pairs = pairs.long()
+    for column, size, what in ((0, num_prediction, "prediction"), (1, num_reference, "reference")):
+        col = pairs[:, column]
+        if col.numel() and (int(col.min()) < 0 or int(col.max()) >= size):
+            raise ValueError(
+                f"correspondences: expected {what} indices (column {column}) in [0, {size}), "
+                f"got values in [{int(col.min())}, {int(col.max())}]"
+            )
+    return pairs
+
+
+def _check_mesh(vertices: object, faces: object, prefix: str) -> tuple[Tensor, np.ndarray]:
+    check_shape(vertices, ["N", 3], f"{prefix}_vertices")
+    assert isinstance(vertices, Tensor)
+    check_floating(vertices, f"{prefix}_vertices")
+    check_finite(vertices, f"{prefix}_vertices")
+    return vertices.detach().cpu().double(), _check_faces(faces, vertices.shape[0], f"{prefix}_faces")
+
+
+def evaluate_reconstruction(
+    prediction_vertices: Tensor,
+    prediction_faces: Tensor,
+    reference_vertices: Tensor,
+    reference_faces: Tensor,
+    reference_face_region: Tensor,
+    correspondences: object = None,
+    same_topology: bool | None = None,
+    *,
+    landmark_names: Sequence[str] = DEFAULT_ALIGNMENT_LANDMARKS,
+    icp_max_iterations: int = 50,
+    icp_tolerance: float = 1e-6,
+    icp_max_distance: float | None = 10.0,
+    view_direction: Tensor | None = None,
+    depth_front_facing: bool = True,
+) -> EvaluationReport:
+    """Score a predicted head mesh against a reference after rigid and after similarity alignment.
+
+    Args:
+        prediction_vertices: ``(M, 3)`` predicted vertices (mm, any pose).
+        prediction_faces: ``(G, 3)`` predicted triangles.
+        reference_vertices: ``(N, 3)`` reference vertices (mm, model frame: face along −z).
+        reference_faces: ``(F, 3)`` reference triangles (for the reference normals).
+        reference_face_region: ``(N,)`` bool mask of the scored reference vertices.
+        correspondences: the rough alignment's corresponding points: a ``(K, 2)`` integer tensor
+            or sequence of ``(prediction index, reference index)`` pairs (K ≥ 3); a pair
+            ``(prediction_landmarks, reference_landmarks)`` of name → vertex mappings or
+            :class:`~facenormals.models.MorphableModel`-like objects with ``.landmarks`` (the
+            ``landmark_names`` are used; iBUG-68 names are understood); one mapping/model when the
+            topology is shared; or ``None``: all face-region vertices when the topology is shared.
+        same_topology: whether vertex ``i`` of both meshes is the same point; default: true when
+            the vertex counts and face arrays agree.
+        landmark_names: landmarks used from landmark mappings (default: eye corners ×4, nose tip,
+            chin).
+        icp_max_iterations, icp_tolerance: ICP settings (see :func:`icp_point_to_plane`).
+        icp_max_distance: ICP pairs farther apart than this (mm) are left out of the fit; ``None``
+            keeps all.
+        view_direction: ``(3,)`` viewing direction of the depth errors, default ``(0, 0, 1)``.
+        depth_front_facing: take the depth statistics over the face-region vertices whose
+            reference normal faces the viewer (``n · view_direction < 0``) only; ``False``: over
+            the whole face region.
+
+    Returns:
+        :class:`EvaluationReport`.
+
+    Raises:
+        ValueError: on bad shapes, dtypes, NaN vertices, out-of-range indices, missing landmarks,
+            or ``same_topology=True`` with different vertex counts.
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> model = builtin_head_model()
+        >>> prediction = model.mean * 1.02 + torch.tensor([1.0, 2.0, 3.0])
+        >>> report = evaluate_reconstruction(prediction, model.faces, model.mean, model.faces,
+        ...                                  model.face_region, correspondences=model)
+        >>> round(report.similarity.scale, 3), report.similarity.point_to_plane_rmse < 1e-3
+        (0.98, True)
+        >>> report.rigid.point_to_plane_rmse > 0.1
+        True
+    """
+    pred, pred_faces = _check_mesh(prediction_vertices, prediction_faces, "prediction")
+    ref, _ = _check_mesh(reference_vertices, reference_faces, "reference")
+    check_shape(reference_face_region, [ref.shape[0]], "reference_face_region")
+    if reference_face_region.dtype != torch.bool:
+        raise ValueError(f"reference_face_region: expected a bool tensor, got dtype {reference_face_region.dtype}")
+    region = reference_face_region.detach().cpu()
+    if not bool(region.any()):
+        raise ValueError("reference_face_region: expected at least one selected vertex")
+    same_shape = pred.shape[0] == ref.shape[0]
+    if same_topology is None:
+        same_topology = same_shape and tuple(prediction_faces.shape) == tuple(reference_faces.shape) and bool(
+            torch.equal(prediction_faces.detach().cpu().long(), reference_faces.detach().cpu().long())
+        )
+    elif same_topology and not same_shape:
+        raise ValueError(
+            f"same_topology: True needs equal vertex counts, got prediction_vertices {tuple(pred.shape)} "
+            f"and reference_vertices {tuple(ref.shape)}"
+        )
+    pairs = _resolve_pairs(correspondences, same_topology, region, pred.shape[0], ref.shape[0], landmark_names)
+    if pairs.shape[0] < 3:
+        raise ValueError(f"correspondences: expected at least 3 pairs, got {pairs.shape[0]}")
+    normals = vertex_normals(ref[None], reference_faces.detach().cpu().long())[0]
+    points, point_normals = ref[region], normals[region]
+    if view_direction is not None:
+        check_shape(view_direction, [3], "view_direction")
+        check_floating(view_direction, "view_direction")
+        check_finite(view_direction, "view_direction")
+        direction = view_direction.detach().cpu().double()
+        if not float(direction.norm()) > 0:
+            raise ValueError("view_direction: expected a non-zero vector")
+    else:
+        direction = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    depth_points = points[point_normals @ direction < 0] if depth_front_facing else points
+    pred_faces_t = torch.from_numpy(pred_faces)
+    results = {}
+    for name, scale in (("rigid", False), ("similarity", True)):
+        init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
+        icp = icp_point_to_plane(
+            pred,
+            points,
+            point_normals,
+            init=init,
+            scale=scale,
+            max_iterations=icp_max_iterations,
+            tolerance=icp_tolerance,
+            max_distance=icp_max_distance,
+            direction="target_to_source",
+        )
+        aligned = icp.s * pred @ icp.R.T + icp.t
+        p2p = point_to_plane_errors(points, point_normals, aligned, pred_faces_t)
+        corr = correspondence_errors(points, aligned[region]) if same_topology else None
+        depth = depth_statistics(depth_errors(depth_points, aligned, pred_faces_t, direction))
+        results[name] = AlignmentResult(
+            point_to_plane_rmse=float(p2p.square().mean().sqrt()),
+            correspondence_rmse=None if corr is None else float(corr.square().mean().sqrt()),
+            depth=depth,
+            scale=icp.s,
+            rotation=icp.R,
+            translation=icp.t,
+            icp_iterations=icp.iterations,
+            icp_converged=icp.converged,
+        )
+    return EvaluationReport(
+        rigid=results["rigid"],
+        similarity=results["similarity"],
+        same_topology=bool(same_topology),
+        num_points=int(points.shape[0]),
+        num_alignment_points=int(pairs.shape[0]),
+    )
+
+
+def _mean_metrics(reports: Sequence[EvaluationReport]) -> dict[str, dict[str, float | None]]:
+    out: dict[str, dict[str, float | None]] = {}
+    for alignment in ALIGNMENTS:
+        rows = [getattr(r, alignment).as_dict() for r in reports]
+        out[alignment] = {}
+        for key in SUMMARY_METRICS:
+            values = [row[key] for row in rows]
+            out[alignment][key] = None if any(v is None for v in values) else float(np.mean(values))
+    return out
+
+
+def _check_reports(reports: object, name: str, count: int | None = None) -> list[EvaluationReport]:
+    if not isinstance(reports, Sequence) or not all(isinstance(r, EvaluationReport) for r in reports):
+        raise ValueError(f"{name}: expected a sequence of EvaluationReport")
+    if len(reports) == 0:
+        raise ValueError(f"{name}: expected at least one report, got 0")
+    if count is not None and len(reports) != count:
+        raise ValueError(f"{name}: expected {count} reports (one per report of reports), got {len(reports)}")
+    return list(reports)
+
+
+def summarise(
+    reports: Sequence[EvaluationReport], baseline_reports: Sequence[EvaluationReport] | None = None
+) -> dict[str, object]:
+    """Average a data set's reports, and compare with a baseline (e.g. the mean head) of the same subjects.
+
+    Every metric is the arithmetic mean over the reports of the per-subject value (so an RMSE row
+    is the mean of per-subject RMSEs). A metric that is ``None`` in any report (correspondence
+    RMSE without a shared topology) averages to ``None``. Depth statistics that are NaN (no hit)
+    propagate. The ratio is ``mean / baseline mean`` (ratio of means; below 1 beats the baseline),
+    for the error metrics only.
+
+    Returns:
+        ``{"count": n, "mean": {"rigid": {...}, "similarity": {...}}}`` plus, with a baseline,
+        ``"baseline_mean"`` (same layout) and ``"ratio"`` (``{alignment: {error metric: ratio}}``).
+
+    Raises:
+        ValueError: on an empty list, non-report entries, or a baseline of a different length.
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> m = builtin_head_model()
+        >>> run = lambda v: evaluate_reconstruction(v, m.faces, m.mean, m.faces, m.face_region, m)
+        >>> ours = [run(m.mean + 0.5 * m.shape_basis[0])]; mean_head = [run(m.mean + 2.0 * m.shape_basis[0])]
+        >>> summary = summarise(ours, mean_head)
+        >>> summary["count"], sorted(summary)
+        (1, ['baseline_mean', 'count', 'mean', 'ratio'])
+        >>> 0 < summary["ratio"]["rigid"]["correspondence_rmse"] < 1
+        True
+    """
+    reports = _check_reports(reports, "reports")
+    out: dict[str, object] = {"count": len(reports), "mean": _mean_metrics(reports)}
+    if baseline_reports is not None:
+        baseline = _mean_metrics(_check_reports(baseline_reports, "baseline_reports", len(reports)))
+        mean = out["mean"]
+        assert isinstance(mean, dict)
+        ratio: dict[str, dict[str, float | None]] = {}
+        for alignment in ALIGNMENTS:
+            ratio[alignment] = {}
+            for key in RATIO_METRICS:
+                a, b = mean[alignment][key], baseline[alignment][key]
+                if a is None or b is None:
+                    ratio[alignment][key] = None
+                else:
+                    ratio[alignment][key] = a / b if b != 0 else (math.nan if a == 0 else math.inf)
+        out["baseline_mean"] = baseline
+        out["ratio"] = ratio
+    return out

@@ -1,0 +1,128 @@
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from facenormals.eval import DEFAULT_ALIGNMENT_LANDMARKS, apply_similarity, fit_similarity, landmark_correspondences
+from facenormals.models import LANDMARK_NAMES
+from tests.conftest import assert_close
+
+
+def umeyama_numpy(src, dst, w=None, with_scale=True):
+    """Hand-written reference (Umeyama 1991), one problem, float64."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    w = np.full(len(src), 1.0 / len(src)) if w is None else np.asarray(w, np.float64) / np.sum(w)
+    mx, my = w @ src, w @ dst
+    xs, ys = src - mx, dst - my
+    cov = (ys * w[:, None]).T @ xs
+    u, sv, vt = np.linalg.svd(cov)
+    d = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        d[2, 2] = -1
+    rot = u @ d @ vt
+    scale = np.trace(np.diag(sv) @ d) / (w @ (xs**2).sum(1)) if with_scale else 1.0
+    return scale, rot, my - scale * rot @ mx
+
+
+def random_similarity(generator, batch, dtype=torch.float64):
+    rot = torch.from_numpy(Rotation.random(batch, random_state=int(torch.randint(0, 10**6, (1,), generator=generator))).as_matrix())
+    s = 0.5 + torch.rand(batch, generator=generator, dtype=torch.float64)
+    t = 100 * torch.randn(batch, 3, generator=generator, dtype=torch.float64)
+    return s.to(dtype), rot.to(dtype), t.to(dtype)
+
+
+@pytest.mark.parametrize("scale", [True, False])
+def test_round_trip_known_transform(dtype, scale):
+    g = torch.Generator().manual_seed(0)
+    source = 50 * torch.randn(4, 6, 3, generator=g, dtype=torch.float64)
+    s, rot, t = random_similarity(g, 4)
+    if not scale:
+        s = torch.ones(4, dtype=torch.float64)
+    target = apply_similarity(source, s, rot, t)
+    s_fit, r_fit, t_fit = fit_similarity(source.to(dtype), target.to(dtype), scale=scale)
+    assert s_fit.dtype == r_fit.dtype == t_fit.dtype == dtype
+    tol = {"rtol": 1e-4, "atol": 1e-3} if dtype == torch.float32 else {}
+    assert_close(s_fit, s.to(dtype), **tol)
+    assert_close(r_fit, rot.to(dtype), **({"rtol": 1e-4, "atol": 1e-5} if dtype == torch.float32 else {}))
+    assert_close(t_fit, t.to(dtype), **tol)
+
+
+def test_matches_numpy_umeyama_with_noise_and_weights():
+    g = torch.Generator().manual_seed(1)
+    source = 30 * torch.randn(3, 40, 3, generator=g, dtype=torch.float64)
+    s, rot, t = random_similarity(g, 3)
+    target = apply_similarity(source, s, rot, t) + torch.randn(3, 40, 3, generator=g, dtype=torch.float64)
+    weights = torch.rand(3, 40, generator=g, dtype=torch.float64)
+    for with_scale in (True, False):
+        for w in (None, weights):
+            s_fit, r_fit, t_fit = fit_similarity(source, target, w, scale=with_scale)
+            for b in range(3):
+                ref = umeyama_numpy(source[b].numpy(), target[b].numpy(), None if w is None else w[b].numpy(), with_scale)
+                assert s_fit[b].item() == pytest.approx(ref[0], rel=1e-10)
+                np.testing.assert_allclose(r_fit[b].numpy(), ref[1], atol=1e-10)
+                np.testing.assert_allclose(t_fit[b].numpy(), ref[2], atol=1e-8)
+
+
+def test_rotation_matches_scipy_align_vectors():
+    g = torch.Generator().manual_seed(2)
+    source = torch.randn(1, 25, 3, generator=g, dtype=torch.float64)
+    _, rot, _ = random_similarity(g, 1)
+    target = source @ rot.transpose(1, 2) + 0.05 * torch.randn(1, 25, 3, generator=g, dtype=torch.float64)
+    weights = torch.rand(1, 25, generator=g, dtype=torch.float64)
+    _, r_fit, _ = fit_similarity(source, target, weights, scale=False)
+    # align_vectors(a, b) minimises sum w |a - R b|^2; compare on centred points
+    ws = weights / weights.sum()
+    a = (target - (ws[..., None] * target).sum(1, keepdim=True))[0].numpy()
+    b = (source - (ws[..., None] * source).sum(1, keepdim=True))[0].numpy()
+    expected, _ = Rotation.align_vectors(a, b, weights=weights[0].numpy())
+    np.testing.assert_allclose(r_fit[0].numpy(), expected.as_matrix(), atol=1e-10)
+
+
+def test_reflection_safe():
+    g = torch.Generator().manual_seed(3)
+    source = torch.randn(2, 10, 3, generator=g, dtype=torch.float64)
+    mirrored = source * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+    _, r_fit, _ = fit_similarity(source, mirrored)
+    assert_close(torch.det(r_fit), torch.ones(2, dtype=torch.float64))
+    assert_close(r_fit @ r_fit.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(2, 3, 3))
+
+
+def test_differentiable():
+    g = torch.Generator().manual_seed(4)
+    source = torch.randn(1, 8, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    target = (2 * source.detach() + 1).requires_grad_()
+    s, r, t = fit_similarity(source, target)
+    (s.sum() + r.sum() + t.sum()).backward()
+    assert torch.isfinite(source.grad).all() and torch.isfinite(target.grad).all()
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"source": torch.zeros(1, 5, 2)}, r"source: expected shape \(B, N, 3\), got \(1, 5, 2\)"),
+        ({"target": torch.zeros(1, 4, 3)}, r"target: expected shape \(B, N, 3\) with N=5"),
+        ({"source": torch.zeros(1, 2, 3), "target": torch.zeros(1, 2, 3)}, r"source: expected at least 3 points"),
+        ({"source": torch.full((1, 5, 3), float("nan"))}, r"source: expected finite values"),
+        ({"target": torch.zeros(1, 5, 3, dtype=torch.long)}, r"target: expected a floating-point tensor"),
+        ({"weights": -torch.ones(1, 5)}, r"weights: expected non-negative"),
+        ({"weights": torch.zeros(1, 5)}, r"weights: expected a positive sum"),
+        ({"weights": torch.ones(1, 4)}, r"weights: expected shape \(B, N\) with N=5"),
+    ],
+)
+def test_bad_inputs(kwargs, match):
+    args = {"source": torch.randn(1, 5, 3), "target": torch.randn(1, 5, 3), "weights": None}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        fit_similarity(**args)
+
+
+def test_landmark_correspondences():
+    assert set(DEFAULT_ALIGNMENT_LANDMARKS) <= set(LANDMARK_NAMES) and len(DEFAULT_ALIGNMENT_LANDMARKS) == 6
+    named = {name: i for i, name in enumerate(LANDMARK_NAMES)}
+    ibug = {f"ibug_{i:02d}": 1000 + i for i in range(68)}
+    pairs = landmark_correspondences(named, ibug)
+    assert pairs.shape == (6, 2) and pairs.dtype == torch.long
+    assert pairs[:, 0].tolist() == [named[n] for n in DEFAULT_ALIGNMENT_LANDMARKS]
+    assert pairs[:, 1].tolist() == [1036, 1039, 1042, 1045, 1030, 1008]
+    with pytest.raises(ValueError, match=r"target_landmarks: expected landmark 'right_ear_top'"):
+        landmark_correspondences(named, ibug, ["right_ear_top"])

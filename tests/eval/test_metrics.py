@@ -1,0 +1,183 @@
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from facenormals.eval import (
+    DepthStatistics,
+    closest_points_on_mesh,
+    correspondence_errors,
+    depth_errors,
+    depth_statistics,
+    point_to_plane_errors,
+)
+from facenormals.eval.surface import closest_points_on_triangles, intersect_lines_along_z
+from facenormals.mesh import vertex_normals
+
+
+def grid(n=21, size=100.0, z=None):
+    """A square grid in the plane z = z(x, y) (mm), triangles facing a viewer looking along +z."""
+    xs = np.linspace(-size / 2, size / 2, n)
+    x, y = np.meshgrid(xs, xs, indexing="ij")
+    x, y = x.ravel(), y.ravel()
+    zz = np.zeros_like(x) if z is None else z(x, y)
+    index = np.arange(n * n).reshape(n, n)
+    a, b, c, d = index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])  # normal along -z
+    return torch.from_numpy(np.stack([x, y, zz], 1)), torch.from_numpy(faces)
+
+
+def sphere(radius, subdivisions=4):
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return torch.from_numpy(np.asarray(mesh.vertices)), torch.from_numpy(np.asarray(mesh.faces)).long()
+
+
+def brute_force_distance(points, tri):
+    out = []
+    for p in points:
+        q = closest_points_on_triangles(np.repeat(p[None], len(tri), 0), tri[:, 0], tri[:, 1], tri[:, 2])
+        out.append(np.sqrt(((q - p) ** 2).sum(1)).min())
+    return np.array(out)
+
+
+def test_closest_point_on_triangle_regions():
+    a, b, c = np.array([[0.0, 0, 0]]), np.array([[2.0, 0, 0]]), np.array([[0.0, 2, 0]])
+    queries = {(0.5, 0.5, 3.0): (0.5, 0.5, 0), (-1, -1, 0): (0, 0, 0), (3, -1, 1): (2, 0, 0), (-1, 3, 0): (0, 2, 0),
+               (1, -2, 0): (1, 0, 0), (-2, 1, 0): (0, 1, 0), (2, 2, 0): (1, 1, 0)}  # fmt: skip
+    for p, expected in queries.items():
+        got = closest_points_on_triangles(np.array([p], dtype=float), a, b, c)
+        np.testing.assert_allclose(got[0], expected, atol=1e-12)
+    degenerate = closest_points_on_triangles(np.array([[5.0, 0, 0]]), a, a, a)
+    np.testing.assert_allclose(degenerate, a)
+
+
+def test_closest_points_on_mesh_matches_brute_force():
+    rng = np.random.default_rng(0)
+    vertices, faces = sphere(40.0, subdivisions=2)
+    vertices = vertices.numpy() + rng.normal(scale=2.0, size=vertices.shape)
+    faces = faces.numpy()
+    points = np.concatenate([rng.normal(scale=30.0, size=(60, 3)), vertices * 1.05 + rng.normal(size=vertices.shape)])
+    closest, distance, triangle = closest_points_on_mesh(points, vertices, faces, k=4)
+    np.testing.assert_allclose(distance, brute_force_distance(points, vertices[faces]), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(closest - points, axis=1), distance, atol=1e-9)
+    again = closest_points_on_triangles(points, *np.moveaxis(vertices[faces][triangle], 1, 0))
+    np.testing.assert_allclose(again, closest, atol=1e-9)
+
+
+def test_point_to_plane_identical_is_zero_and_inflated_sphere_is_one():
+    vertices, faces = sphere(50.0)
+    normals = vertex_normals(vertices[None], faces)[0]
+    errors = point_to_plane_errors(vertices, normals, vertices, faces)
+    assert errors.shape == (len(vertices),) and errors.dtype == torch.float64
+    assert float(errors.abs().max()) < 1e-9
+    inflated = vertices * (51.0 / 50.0)
+    errors = point_to_plane_errors(vertices, normals, inflated, faces)
+    assert float(errors.square().mean().sqrt()) == pytest.approx(1.0, abs=2e-3)
+    assert float(errors.min()) > 0.99  # outside: positive
+    shrunk = point_to_plane_errors(vertices, normals, vertices * (49.0 / 50.0), faces)
+    assert float(shrunk.max()) < -0.99
+
+
+def test_point_to_plane_uses_the_surface_not_the_vertices():
+    vertices, faces = grid(n=3, size=100.0)  # vertices 50 mm apart
+    points = torch.tensor([[10.0, 20.0, -2.0], [-30.0, 5.0, 4.0]], dtype=torch.float64)
+    normals = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    errors = point_to_plane_errors(points, normals, vertices, faces)
+    torch.testing.assert_close(errors, torch.tensor([-2.0, 4.0], dtype=torch.float64))
+    assert point_to_plane_errors(points.float(), normals.float(), vertices, faces).dtype == torch.float32
+
+
+def test_correspondence_errors():
+    a = torch.zeros(3, 3)
+    b = torch.tensor([[3.0, 4, 0], [0, 0, 0], [1, 0, 0]])
+    torch.testing.assert_close(correspondence_errors(a, b), torch.tensor([5.0, 0, 1]))
+
+
+def test_depth_of_shifted_plane():
+    reference, _ = grid()
+    shifted, faces = grid(z=lambda x, y: np.full_like(x, 2.0))
+    errors = depth_errors(reference, shifted, faces)
+    torch.testing.assert_close(errors, torch.full((len(reference),), 2.0, dtype=torch.float64))
+    stats = depth_statistics(errors)
+    assert stats == DepthStatistics(mean=2.0, std=0.0, median=2.0, delta90=2.0, coverage=1.0, count=len(reference))
+
+
+def test_depth_of_tilted_plane_and_delta90_definition():
+    reference, _ = grid()
+    tilted, faces = grid(z=lambda x, y: 0.1 * x - 1.0)
+    errors = depth_errors(reference, tilted, faces)
+    expected = 0.1 * reference[:, 0] - 1.0  # exact: the plane is linear in x
+    torch.testing.assert_close(errors, expected)
+    stats = depth_statistics(errors)
+    absolute = np.abs(expected.numpy())
+    assert stats.mean == pytest.approx(absolute.mean())
+    assert stats.std == pytest.approx(absolute.std())
+    assert stats.median == pytest.approx(np.median(absolute))
+    assert stats.delta90 == pytest.approx(np.percentile(absolute, 90))
+    assert (absolute <= stats.delta90 + 1e-12).mean() >= 0.9
+
+
+def test_depth_misses_view_direction_and_facing():
+    reference, faces = grid()
+    outside = torch.tensor([[500.0, 0.0, 0.0]], dtype=torch.float64)
+    assert torch.isnan(depth_errors(outside, reference, faces)).all()
+    back = faces[:, [0, 2, 1]]  # the same plane facing away from the viewer
+    assert torch.isnan(depth_errors(reference, reference, back)).all()
+    assert float(depth_errors(reference, reference, back, front_facing=False).abs().max()) == 0.0
+    # a plane x = 3 seen along -x: rotate the grid about y by -90 degrees, so its front faces +x
+    rot = torch.tensor([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]], dtype=torch.float64)
+    wall = reference @ rot.T + torch.tensor([3.0, 0, 0], dtype=torch.float64)
+    view = torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64)
+    points = torch.tensor([[10.0, 5.0, 1.0]], dtype=torch.float64)
+    torch.testing.assert_close(depth_errors(points, wall, faces, view), torch.tensor([7.0], dtype=torch.float64))
+
+
+def test_depth_nearest_of_several_hits():
+    v, f = grid(n=3)
+    layers = torch.cat([v, v + torch.tensor([0.0, 0.0, 10.0], dtype=torch.float64)])
+    faces = torch.cat([f, f + len(v)])
+    z = intersect_lines_along_z(np.array([[1.0, 1.0, 8.0], [1.0, 1.0, 3.0]]), layers.numpy(), faces.numpy())
+    np.testing.assert_allclose(z, [10.0, 0.0])
+
+
+def test_depth_statistics_nan_and_empty():
+    stats = depth_statistics(torch.tensor([1.0, -3.0, float("nan"), float("nan")]))
+    assert stats.mean == 2.0 and stats.coverage == 0.5 and stats.count == 2
+    empty = depth_statistics(torch.full((3,), float("nan")))
+    assert np.isnan(empty.mean) and empty.coverage == 0.0 and empty.count == 0
+    assert set(stats.as_dict()) == {"mean", "std", "median", "delta90", "coverage", "count"}
+
+
+def test_large_mesh_speed():
+    """~10k points against ~20k triangles: well under the 1-2 s budget."""
+    import time
+
+    vertices, faces = sphere(100.0, subdivisions=5)
+    points = vertices * 1.01
+    normals = vertex_normals(vertices[None], faces)[0]
+    start = time.perf_counter()
+    point_to_plane_errors(points, normals, vertices, faces)
+    assert time.perf_counter() - start < 2.0
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (lambda v, f, n: point_to_plane_errors(v[:, :2], n, v, f), r"reference_vertices: expected shape \(N, 3\)"),
+        (lambda v, f, n: point_to_plane_errors(v, n[:5], v, f), r"reference_normals: expected shape \(N, 3\) with N="),
+        (lambda v, f, n: point_to_plane_errors(v, n, v * float("nan"), f), r"reconstruction_vertices: expected finite"),
+        (lambda v, f, n: point_to_plane_errors(v * float("nan"), n, v, f), r"reference_vertices: expected finite"),
+        (lambda v, f, n: point_to_plane_errors(v, n, v, f.double()), r"reconstruction_faces: expected an integer"),
+        (lambda v, f, n: point_to_plane_errors(v, n, v, f + len(v)), r"reconstruction_faces: expected vertex indices"),
+        (lambda v, f, n: point_to_plane_errors(v, n, v, f[:0]), r"reconstruction_faces: expected at least one"),
+        (lambda v, f, n: depth_errors(v, v, f, torch.zeros(3, dtype=v.dtype)), r"view_direction: expected a non-zero"),
+        (lambda v, f, n: depth_errors(v, v, f, torch.ones(2, dtype=v.dtype)), r"view_direction: expected shape \(3,\)"),
+        (lambda v, f, n: correspondence_errors(v, v[:3]), r"reconstruction_vertices: expected shape \(N, 3\) with N="),
+        (lambda v, f, n: depth_statistics(v), r"errors: expected shape \(N,\)"),
+    ],
+)
+def test_bad_inputs(call, match):
+    vertices, faces = sphere(10.0, subdivisions=1)
+    normals = vertex_normals(vertices[None], faces)[0]
+    with pytest.raises(ValueError, match=match):
+        call(vertices, faces, normals)

@@ -1,0 +1,166 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from facenormals.eval import AlignmentResult, EvaluationReport, evaluate_reconstruction, summarise
+from facenormals.models import builtin_head_model
+
+SIMILARITY_INVARIANT = ("point_to_plane_rmse", "correspondence_rmse", "depth_mean", "depth_std", "depth_median",
+                        "depth_delta90", "depth_coverage", "depth_count")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def head():
+    model = builtin_head_model().double()
+    torch.manual_seed(0)
+    shape = model(model.shape_std[None] * torch.randn(1, model.num_shape, dtype=torch.float64))[0]
+    return model, shape
+
+
+def similarity_of(seed, scale):
+    rot = torch.from_numpy(Rotation.from_euler("xyz", [0.3, -0.4, 0.2]).as_matrix() if seed else np.eye(3))
+    return scale, rot, torch.tensor([15.0, -40.0, 600.0], dtype=torch.float64)
+
+
+def test_similarity_errors_invariant_to_applied_transform(head):
+    model, shape = head
+    base = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    s, rot, t = similarity_of(1, 1.2)
+    moved = evaluate_reconstruction(s * shape @ rot.T + t, model.faces, model.mean, model.faces, model.face_region, model)
+    a, b = base.similarity.as_dict(), moved.similarity.as_dict()
+    for key in SIMILARITY_INVARIANT:
+        assert b[key] == pytest.approx(a[key], rel=1e-6, abs=1e-8), key
+    assert moved.similarity.scale == pytest.approx(base.similarity.scale / s, rel=1e-6)
+    assert base.same_topology and base.num_alignment_points == 6 and base.num_points == int(model.face_region.sum())
+    # the errors are real: a random 1-sigma head is mm away from the mean; rigid cannot undo the scale
+    assert 0.2 < base.similarity.point_to_plane_rmse < base.similarity.correspondence_rmse
+    assert moved.rigid.point_to_plane_rmse > base.rigid.point_to_plane_rmse + 0.5
+
+
+def test_rigid_errors_invariant_to_rigid_transform(head):
+    model, shape = head
+    base = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    s, rot, t = similarity_of(1, 1.0)
+    moved = evaluate_reconstruction(shape @ rot.T + t, model.faces, model.mean, model.faces, model.face_region, model)
+    for key in SIMILARITY_INVARIANT:
+        assert moved.rigid.as_dict()[key] == pytest.approx(base.rigid.as_dict()[key], rel=1e-6, abs=1e-8), key
+    assert base.rigid.scale == 1.0
+
+
+def test_identical_meshes_score_zero(head):
+    model, _ = head
+    report = evaluate_reconstruction(model.mean, model.faces, model.mean, model.faces, model.face_region)
+    for alignment in (report.rigid, report.similarity):
+        assert alignment.point_to_plane_rmse < 1e-9 and alignment.correspondence_rmse < 1e-9
+        assert alignment.depth.mean < 1e-9 and alignment.depth.coverage == 1.0
+    assert report.num_alignment_points == int(model.face_region.sum())  # default: all face-region vertices
+
+
+def test_inflated_sphere_rigid_one_mm_similarity_zero():
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    vertices = torch.from_numpy(np.asarray(mesh.vertices))
+    faces = torch.from_numpy(np.asarray(mesh.faces)).long()
+    region = torch.ones(len(vertices), dtype=torch.bool)
+    s, rot, t = similarity_of(1, 1.0)
+    inflated = (vertices * 51.0 / 50.0) @ rot.T + t
+    report = evaluate_reconstruction(inflated, faces, vertices, faces, region)
+    assert report.rigid.point_to_plane_rmse == pytest.approx(1.0, abs=5e-3)
+    assert report.rigid.correspondence_rmse == pytest.approx(1.0, abs=1e-6)
+    assert report.similarity.point_to_plane_rmse < 1e-6
+    assert report.similarity.scale == pytest.approx(50.0 / 51.0, rel=1e-9)
+
+
+def test_different_topology_needs_correspondences(head):
+    model, shape = head
+    vertices, faces = trimesh.remesh.subdivide(shape.numpy(), model.faces.numpy())  # same surface, new vertices appended
+    vertices, faces = torch.from_numpy(vertices), torch.from_numpy(faces).long()
+    with pytest.raises(ValueError, match="correspondences: required when the meshes do not share a topology"):
+        evaluate_reconstruction(vertices, faces, model.mean, model.faces, model.face_region)
+    with pytest.raises(ValueError, match="correspondences: one landmark mapping needs meshes of the same topology"):
+        evaluate_reconstruction(vertices, faces, model.mean, model.faces, model.face_region, model.landmarks)
+    report = evaluate_reconstruction(vertices, faces, model.mean, model.faces, model.face_region, (model, model))
+    same = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    assert not report.same_topology and report.similarity.correspondence_rmse is None
+    assert report.similarity.point_to_plane_rmse == pytest.approx(same.similarity.point_to_plane_rmse, abs=0.02)
+    pairs = [[model.landmarks[n], model.landmarks[n]] for n in ("right_eye_outer", "left_eye_outer", "nose_tip", "chin")]
+    by_pairs = evaluate_reconstruction(vertices, faces, model.mean, model.faces, model.face_region, pairs)
+    assert by_pairs.num_alignment_points == 4
+    assert by_pairs.similarity.point_to_plane_rmse == pytest.approx(same.similarity.point_to_plane_rmse, abs=0.02)
+
+
+def test_report_dict_and_table(head):
+    model, shape = head
+    report = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    assert isinstance(report, EvaluationReport) and isinstance(report.rigid, AlignmentResult)
+    data = json.loads(json.dumps(report.as_dict()))
+    assert set(data) == {"same_topology", "num_points", "num_alignment_points", "rigid", "similarity"}
+    assert {"point_to_plane_rmse", "correspondence_rmse", "depth_delta90", "scale", "icp_iterations"} <= set(data["rigid"])
+    text = str(report)
+    assert "point-to-plane RMSE" in text and "similarity" in text and "delta90" in text
+
+    summary = summarise([report, report])
+    assert summary["count"] == 2 and set(summary) == {"count", "mean"}
+    assert summary["mean"]["rigid"]["point_to_plane_rmse"] == pytest.approx(report.rigid.point_to_plane_rmse)
+    baseline = evaluate_reconstruction(model.mean + 3 * (shape - model.mean), model.faces, model.mean, model.faces,
+                                       model.face_region, model)
+    summary = summarise([report], [baseline])
+    ratio = summary["ratio"]["similarity"]["correspondence_rmse"]
+    assert ratio == pytest.approx(report.similarity.correspondence_rmse / baseline.similarity.correspondence_rmse)
+    assert 0 < ratio < 1
+    no_topology = EvaluationReport(
+        rigid=AlignmentResult(**{**report.rigid.__dict__, "correspondence_rmse": None}),
+        similarity=report.similarity, same_topology=False, num_points=1, num_alignment_points=6,
+    )
+    mixed = summarise([report, no_topology], [baseline, baseline])
+    assert mixed["mean"]["rigid"]["correspondence_rmse"] is None and mixed["ratio"]["rigid"]["correspondence_rmse"] is None
+    with pytest.raises(ValueError, match=r"baseline_reports: expected 1 reports"):
+        summarise([report], [baseline, baseline])
+    with pytest.raises(ValueError, match=r"reports: expected at least one report"):
+        summarise([])
+    with pytest.raises(ValueError, match=r"reports: expected a sequence of EvaluationReport"):
+        summarise([report.as_dict()])
+
+
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        ({"prediction_vertices": "nan"}, r"prediction_vertices: expected finite values"),
+        ({"reference_vertices": "nan"}, r"reference_vertices: expected finite values"),
+        ({"prediction_vertices": "2d"}, r"prediction_vertices: expected shape \(N, 3\)"),
+        ({"reference_face_region": "short"}, r"reference_face_region: expected shape \(\d+,\)"),
+        ({"reference_face_region": "float"}, r"reference_face_region: expected a bool tensor"),
+        ({"reference_face_region": "empty"}, r"reference_face_region: expected at least one"),
+        ({"prediction_faces": "range"}, r"prediction_faces: expected vertex indices in"),
+        ({"correspondences": [[0, 1], [2, 3]]}, r"correspondences: expected at least 3 pairs"),
+        ({"correspondences": [[0, 1], [2, 3], [4, 10**6]]}, r"correspondences: expected reference indices"),
+        ({"correspondences": [[0.5, 1], [2, 3], [4, 5]]}, r"correspondences: expected integer index pairs"),
+        ({"correspondences": {"chin": 0}}, r"correspondences: expected landmark 'right_eye_outer'|source_landmarks"),
+        ({"same_topology": True, "prediction_vertices": "extra"}, r"same_topology: True needs equal vertex counts"),
+        ({"view_direction": torch.zeros(3)}, r"view_direction: expected a non-zero vector"),
+    ],
+)
+def test_bad_inputs(head, change, match):
+    model, shape = head
+    args = {
+        "prediction_vertices": shape, "prediction_faces": model.faces, "reference_vertices": model.mean,
+        "reference_faces": model.faces, "reference_face_region": model.face_region, "correspondences": None,
+    }  # fmt: skip
+    replace = {
+        "nan": lambda x: torch.where(torch.arange(len(x))[:, None] == 3, float("nan"), x),
+        "2d": lambda x: x[:, :2],
+        "short": lambda x: x[:-1],
+        "extra": lambda x: torch.cat([x, x[:1]]),
+        "float": lambda x: x.double(),
+        "empty": lambda x: torch.zeros_like(x),
+        "range": lambda x: x + 10**6,
+    }
+    for key, value in change.items():
+        args[key] = replace[value](args[key]) if isinstance(value, str) else value
+    if args["prediction_vertices"].shape[0] != model.num_vertices and args["correspondences"] is None:
+        args["correspondences"] = [[0, 0], [1, 1], [2, 2]]
+    with pytest.raises(ValueError, match=match):
+        evaluate_reconstruction(**args)
