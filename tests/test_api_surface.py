@@ -21,6 +21,12 @@ PUBLIC = {
     "facenormals.energy": ["landmark_residuals", "normal_residuals", "prior_residuals"],
     "facenormals.optim": ["LMResult", "LMStatus", "levenberg_marquardt"],
     "facenormals.nn": ["NormalLandmarkUNet", "UNetOutput", "normal_landmark_loss"],
+    "facenormals.eval": ["AlignmentResult", "DEFAULT_ALIGNMENT_LANDMARKS", "DepthStatistics", "EvaluationReport",
+                         "ICPResult", "apply_similarity", "closest_points_on_mesh", "correspondence_errors",
+                         "depth_errors", "depth_statistics", "evaluate_reconstruction", "fit_similarity",
+                         "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "summarise"],
+    "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "fit_head",
+                            "landmark_pose_jacobian", "prealign_pose"],
 }
 
 # The names the foundation issue makes binding: importable from the top level and their subpackage.

@@ -62,3 +62,18 @@ def test_models_fetch_from_local_copy(tmp_path, monkeypatch, capsys):
     assert main(["models", "fetch", "ict", "--from", str(raw)]) == 0
     assert (tmp_path / "ict" / "ict_face_head.npz").exists()
     assert "ready" in capsys.readouterr().out
+
+
+def test_evaluate_command(tmp_path, capsys):
+    import torch
+
+    model = builtin_head_model()
+    ref = tmp_path / "ref.ply"
+    pred = tmp_path / "pred.obj"
+    model.export_mesh(ref)
+    model.export_mesh(pred, model.shape_std * 0.5)
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--json", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "similarity" in out and (tmp_path / "r.json").exists()
+    assert main(["evaluate", str(tmp_path / "nope.ply"), str(ref), "--model", "builtin"]) == 1
+    assert "nope.ply: mesh file not found" in capsys.readouterr().err

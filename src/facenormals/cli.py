@@ -86,6 +86,42 @@ def _cmd_models(args: argparse.Namespace) -> int:
     raise ValueError(f"unknown action {args.action!r}")
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from facenormals.eval import evaluate_reconstruction
+    from facenormals.mesh import load_mesh
+    from facenormals.models import load_model
+
+    pred_v, pred_f = load_mesh(args.prediction)
+    ref_v, ref_f = load_mesh(args.reference)
+    model = load_model(args.model)
+    if ref_v.shape[0] != model.num_vertices:
+        raise ValueError(
+            f"{args.reference}: has {ref_v.shape[0]} vertices but model {model.name!r} has {model.num_vertices}; "
+            "the reference must share the model's topology (its face region and landmarks are used); pass --model"
+        )
+    if args.prediction_landmarks:
+        with open(args.prediction_landmarks) as handle:
+            pred_landmarks = {str(k): int(v) for k, v in json.load(handle).items()}
+    elif pred_v.shape[0] == model.num_vertices:
+        pred_landmarks = model.landmarks
+    else:
+        raise ValueError(
+            f"{args.prediction}: has {pred_v.shape[0]} vertices, not the model's {model.num_vertices}; "
+            "pass --prediction-landmarks JSON (landmark name -> vertex index) for the rough alignment"
+        )
+    report = evaluate_reconstruction(pred_v.double(), pred_f, ref_v.double(), ref_f, model.face_region,
+                                     correspondences=(pred_landmarks, model.landmarks))
+    print(report)
+    if args.json:
+        from pathlib import Path
+
+        Path(args.json).write_text(json.dumps(report.as_dict(), indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facenormals", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -105,6 +141,15 @@ def build_parser() -> argparse.ArgumentParser:
     fetch.add_argument("--from", dest="source", default=None, help="convert a local copy (folder or zip) instead")
     fetch.add_argument("--force", action="store_true", help="rebuild even if cached")
     models.set_defaults(func=_cmd_models)
+
+    evaluate = sub.add_parser("evaluate", help="score a predicted head mesh against a reference, in mm")
+    evaluate.add_argument("prediction", help="predicted mesh (.ply, .obj, ...)")
+    evaluate.add_argument("reference", help="reference mesh in the topology of --model")
+    evaluate.add_argument("--model", default="auto", help="model giving the reference's face region and landmarks")
+    evaluate.add_argument("--prediction-landmarks", default=None,
+                          help="JSON name -> vertex index for a prediction in another topology")
+    evaluate.add_argument("--json", default=None, help="also write the report as JSON")
+    evaluate.set_defaults(func=_cmd_evaluate)
     return parser
 
 

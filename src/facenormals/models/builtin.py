@@ -182,10 +182,10 @@ def _build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
 
 
 def _face_region(mean: np.ndarray) -> np.ndarray:
-    """The face area: the front of the head between the ears, from the brows to below the chin."""
-    p = {spec.name: spec.mean for spec in BUILTIN_PARAMETERS}
-    x, up, fwd = mean[:, 0], -mean[:, 1], -mean[:, 2]
-    return (fwd > 20.0) & (np.abs(x) < 0.42 * p["head_breadth"]) & (up < 30.0) & (up > -p["face_height"] - 5.0)
+    """The evaluation face region: the front of the head within 95 mm of the nose tip (as for ICT)."""
+    fwd = -mean[:, 2]
+    nose = mean[np.argmax(np.where(np.abs(mean[:, 0]) < 0.5, fwd, -np.inf))]
+    return (np.linalg.norm(mean - nose, axis=1) < 95.0) & (fwd > 0.0)
 
 
 def builtin_head_model(dtype: torch.dtype = torch.float32) -> MorphableModel:

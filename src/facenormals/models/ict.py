@@ -40,6 +40,7 @@ ICT_HEAD_VERTEX_COUNT = 11248
 ICT_HEAD_POLYGON_COUNT = 11144
 #: The face area (region #0) is the first 9409 vertices.
 ICT_FACE_VERTEX_COUNT = 9409
+FACE_CROP_RADIUS_MM = 95.0
 ICT_NEUTRAL = "generic_neutral_mesh.obj"
 ICT_CONFIG = "vertex_indices.json"
 ICT_FOLDER = "FaceXModel"
@@ -61,8 +62,8 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
     The archive is in centimetres in an OpenGL-style frame; the model is returned in millimetres in the
     library's model frame. Identity coefficients have unit variance (``shape_std = 1``). The paper's 24
     landmarks are attached (iBUG points and scripted ear vertices, see ``docs/models.md``); the 68 iBUG
-    indices are kept in ``metadata["landmarks_ibug68"]``. The face region is ICT's region #0 (the first
-    9,409 vertices).
+    indices are kept in ``metadata["landmarks_ibug68"]``. The face region is ICT's face area (region
+    #0, the first 9,409 vertices) within 95 mm of the nose tip.
 
     Args:
         path: the ``.npz`` file.
@@ -110,8 +111,12 @@ def _ict_model(arrays: dict, scale: float, dtype: torch.dtype, file: str) -> Mor
     ibug68 = [int(v) for v in arrays["landmarks_ibug68"]]
     num_vertices = np.asarray(arrays["mean"]).shape[0]
     face_count = int(arrays.get("face_vertex_count", ICT_FACE_VERTEX_COUNT))
-    face_region = torch.zeros(num_vertices, dtype=torch.bool)
-    face_region[:face_count] = True
+    # The evaluation face region: ICT's face area (region #0) within 95 mm of the nose tip, the crop
+    # radius of common face-reconstruction benchmarks (region #0 alone reaches down the neck).
+    mean_cm = np.asarray(arrays["mean"], dtype=np.float64)
+    nose = mean_cm[ibug68[30]]
+    near = np.linalg.norm(mean_cm - nose, axis=1) * scale < FACE_CROP_RADIUS_MM
+    face_region = torch.from_numpy(near & (np.arange(num_vertices) < face_count))
     return MorphableModel(
         to_model("mean"),
         to_model("identity_basis"),

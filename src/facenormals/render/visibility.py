@@ -17,12 +17,13 @@ def visible_vertices(
     camera_points: Tensor,
     zbuffer: Tensor,
     tolerance: float = 3.0,
+    min_facing: float = 0.0,
 ) -> Tensor:
     r"""Which vertices the camera sees.
 
     A vertex is visible when it is front-facing (its normal points towards the camera,
-    :math:`n \cdot X_c < 0`), it projects inside the image, and its depth is at most ``tolerance``
-    (mm) behind the z-buffer at its nearest pixel.
+    :math:`n \cdot X_c / \lVert X_c \rVert < -\text{min\_facing}`), it projects inside the image,
+    and its depth is at most ``tolerance`` (mm) behind the z-buffer at its nearest pixel.
 
     Args:
         pixels: projected vertices ``(u, v)``.
@@ -32,6 +33,8 @@ def visible_vertices(
         zbuffer: the depth map of the same mesh, e.g. ``rasterize_triangles(...).depth``
             (``inf`` on background).
         tolerance: depth slack in mm, to allow for the z-buffer's sampling at pixel centres.
+        min_facing: cosine margin of the front-facing test; e.g. 0.2 drops grazing vertices near
+            the silhouette, whose normals a pixel grid samples poorly.
 
     Returns:
         ``(B, N)`` bool visibility.
@@ -55,7 +58,8 @@ def visible_vertices(
         check_floating(x, name)
     height, width = zdims["H"], zdims["W"]
     with torch.no_grad():
-        front = (camera_normals * camera_points).sum(-1) < 0
+        facing = (camera_normals * camera_points).sum(-1) / camera_points.norm(dim=-1).clamp_min(1e-12)
+        front = facing < -min_facing
         u = torch.round(pixels[..., 0])
         v = torch.round(pixels[..., 1])
         inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)

@@ -1,0 +1,245 @@
+r"""Landmark pre-alignment: the 6-DoF head pose of a fixed shape from 2D landmarks.
+
+Minimises :math:`E_Z = \tfrac12 \sum_j \lVert a_j(\theta, t) - b_j \rVert^2` over the Euler angles
+:math:`\theta` and the translation :math:`t` with the batched Levenberg-Marquardt solver and an
+analytic Jacobian, from several yaw starts at once (one batch), and keeps the best start per view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.energy import landmark_residuals
+from facenormals.geometry import (
+    euler_rotation_derivatives,
+    euler_to_rotation_matrix,
+    project_points,
+    projection_jacobian,
+    rotation_matrix_to_euler,
+)
+from facenormals.optim import LMStatus, levenberg_marquardt
+
+__all__ = ["PoseEstimate", "landmark_pose_jacobian", "prealign_pose"]
+
+DEFAULT_YAW_STARTS = (-70.0, -25.0, 25.0, 70.0)
+
+
+@dataclass
+class PoseEstimate:
+    """Result of :func:`prealign_pose` for ``B`` views.
+
+    Attributes:
+        angles: ``(B, 3)`` roll, pitch, yaw in radians.
+        translation: ``(B, 3)`` translation ``t`` of :math:`X_c = R (p + t)`, mm.
+        rotation: ``(B, 3, 3)``.
+        cost: ``(B,)`` final :math:`E_Z` (px²).
+        rms_px: ``(B,)`` root-mean-square landmark error in pixels.
+        status: ``(B,)`` :class:`~facenormals.optim.LMStatus` of the best start.
+    """
+
+    angles: Tensor
+    translation: Tensor
+    rotation: Tensor
+    cost: Tensor
+    rms_px: Tensor
+    status: Tensor
+
+
+def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: Tensor | None = None) -> Tensor:
+    r"""Jacobian of projected points with respect to the pose ``x = (roll, pitch, yaw, tx, ty, tz)``.
+
+    With :math:`X_c = R(\theta)(p + t)` and :math:`P = \partial a / \partial X_c`:
+    :math:`\partial a / \partial \theta_j = P\, D_j (p + t)` and :math:`\partial a / \partial t = P R`.
+    Rows of masked points are zero, matching :func:`~facenormals.energy.landmark_residuals`.
+
+    Shape:
+        - points: :math:`(B, L, 3)`; x: :math:`(B, 6)`; intrinsics: :math:`(B, 3)`; mask: :math:`(B, L)`
+        - output: :math:`(B, 2L, 6)`
+
+    Example:
+        >>> landmark_pose_jacobian(torch.zeros(1, 4, 3), torch.tensor([[0.0, 0, 0, 0, 0, 500]]),
+        ...                        torch.tensor([[500.0, 64, 64]])).shape
+        torch.Size([1, 8, 6])
+    """
+    dims = check_shape(points, ["B", "L", 3], "points")
+    check_shape(x, ["B", 6], "x", dims)
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    R = euler_to_rotation_matrix(x[:, :3])
+    D = euler_rotation_derivatives(x[:, :3])  # (B, 3, 3, 3)
+    q = points + x[:, None, 3:]
+    P = projection_jacobian(q @ R.transpose(1, 2), intrinsics)  # (B, L, 2, 3)
+    DQ = torch.einsum("bjkl,bnl->bnkj", D, q)  # (B, L, 3, 3): column j is D_j (p + t)
+    d_angles = (P.unsqueeze(-1) * DQ.unsqueeze(-3)).sum(-2)  # P @ DQ without tiny batched matmuls
+    d_t = (P.unsqueeze(-1) * R[:, None, None]).sum(-2)
+    J = torch.cat([d_angles, d_t], dim=-1)  # (B, L, 2, 6)
+    if mask is not None:
+        J = J * mask[..., None, None].to(J.dtype)
+    return J.reshape(J.shape[0], -1, 6)
+
+
+def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tensor, intrinsics: Tensor) -> Tensor:
+    """``t`` placing the points' centroid on the ray through the landmarks' centroid, at the depth
+    where their spreads match: :math:`z = f \\cdot \\mathrm{rms}_{3D} / \\mathrm{rms}_{2D}`."""
+    w = mask.to(points.dtype)[..., None]
+    count = w.sum(1).clamp_min(1.0)
+    centroid3 = (points * w).sum(1) / count
+    centroid2 = (torch.nan_to_num(targets) * w).sum(1) / count
+    spread3 = (((points - centroid3[:, None]) ** 2).sum(-1, keepdim=True) * w).sum(1) / count
+    spread2 = (((torch.nan_to_num(targets) - centroid2[:, None]) ** 2).sum(-1, keepdim=True) * w).sum(1) / count
+    f, center = intrinsics[:, 0:1], intrinsics[:, 1:3]
+    depth = f * (spread3 / spread2.clamp_min(1e-6)).sqrt()  # spread2 in px² ~ (f/z)² spread3 (x, y only)
+    depth = depth * math.sqrt(2.0 / 3.0)  # the 2D spread sees two of three axes
+    camera = torch.cat([(centroid2 - center) * depth / f, depth], dim=-1)
+    return (R.transpose(1, 2) @ camera[..., None])[..., 0] - centroid3
+
+
+def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> Tensor | None:
+    """OpenCV SQPnP poses ``(B, 6)`` as LM starts; ``None`` if OpenCV fails for any view."""
+    import cv2
+    import numpy as np
+
+    out = []
+    for b in range(points.shape[0]):
+        keep = mask[b].cpu().numpy()
+        obj = points[b].detach().cpu().double().numpy()[keep]
+        img = targets[b].detach().cpu().double().numpy()[keep]
+        f, u0, v0 = intrinsics[b].tolist()
+        camera = np.array([[f, 0.0, u0], [0.0, f, v0], [0.0, 0.0, 1.0]])
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
+        except cv2.error:
+            return None
+        if not ok or not np.all(np.isfinite(rvec)) or tvec[2, 0] <= 0:
+            return None
+        R = cv2.Rodrigues(rvec)[0]
+        out.append(np.concatenate([np.zeros(3), R.T @ tvec[:, 0]]))
+        out[-1][:3] = rotation_matrix_to_euler(torch.from_numpy(R)[None])[0].numpy()
+    return torch.tensor(np.stack(out), dtype=points.dtype, device=points.device)
+
+
+def prealign_pose(
+    landmarks: Tensor,
+    model_points: Tensor,
+    intrinsics: Tensor,
+    mask: Tensor | None = None,
+    init: str = "pnp",
+    yaw_starts_deg: Sequence[float] = DEFAULT_YAW_STARTS,
+    max_iterations: int = 40,
+) -> PoseEstimate:
+    r"""Head pose of a fixed shape from 2D landmarks, robust to any yaw in ±90°.
+
+    The start is OpenCV's SQPnP solution (a globally optimal PnP, ``init="pnp"``, falling back to
+    the yaw starts if OpenCV fails) or several yaw starts solved as one batch (``init="multistart"``,
+    the best start wins). LM with an analytic Jacobian then minimises the reprojection error.
+
+    Args:
+        landmarks: detected 2D landmarks ``b_j`` in pixels (NaN allowed where ``mask`` is False).
+        model_points: the corresponding 3D model points (e.g. the mean head's landmark vertices), mm.
+        intrinsics: ``(f, u0, v0)`` per view, e.g. a prior.
+        mask: which landmarks are present; default: the finite ones.
+        init: ``"pnp"`` or ``"multistart"``.
+        yaw_starts_deg: initial yaw angles in degrees for ``"multistart"``.
+        max_iterations: LM iterations per start.
+
+    Returns:
+        A :class:`PoseEstimate`.
+
+    Raises:
+        ValueError: on bad shapes, or when a view has fewer than 4 usable landmarks (the message names
+            the view).
+
+    Shape:
+        - landmarks: :math:`(B, L, 2)`; model_points: :math:`(L, 3)` or :math:`(B, L, 3)`
+        - intrinsics: :math:`(B, 3)`; mask: :math:`(B, L)`
+
+    Example:
+        >>> pts = torch.randn(1, 10, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 50
+        >>> R = euler_to_rotation_matrix(torch.tensor([[0.1, -0.2, 1.2]], dtype=torch.float64))
+        >>> K = torch.tensor([[500.0, 64, 64]], dtype=torch.float64)
+        >>> uv, _ = project_points(pts, R, torch.tensor([[0.0, 0, 600]], dtype=torch.float64) @ R[0], K)
+        >>> est = prealign_pose(uv, pts[0], K)
+        >>> [round(v, 3) for v in est.angles[0].tolist()]
+        [0.1, -0.2, 1.2]
+    """
+    dims = check_shape(landmarks, ["B", "L", 2], "landmarks")
+    check_floating(landmarks, "landmarks")
+    if model_points.dim() == 2:
+        check_shape(model_points, [dims["L"], 3], "model_points")
+        model_points = model_points.expand(dims["B"], -1, -1)
+    check_shape(model_points, ["B", "L", 3], "model_points", dims)
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    check_finite(intrinsics, "intrinsics")
+    check_finite(model_points, "model_points")
+    if mask is None:
+        mask = torch.isfinite(landmarks).all(-1)
+    check_shape(mask, ["B", "L"], "mask", dims)
+    mask = mask & torch.isfinite(landmarks).all(-1)
+    counts = mask.sum(1).tolist()
+    for view, count in enumerate(counts):
+        if count < 4:
+            raise ValueError(
+                f"landmarks: view {view} has {count} visible landmarks; the pose needs at least 4 "
+                "(is there a face in this view?)"
+            )
+    if init not in ("pnp", "multistart"):
+        raise ValueError(f"init: expected 'pnp' or 'multistart', got {init!r}")
+    out_dtype = landmarks.dtype
+    dtype = torch.float64  # a 6-parameter problem: float64 costs nothing and converges in fewer steps
+    landmarks = landmarks.to(dtype)
+    model_points = model_points.to(dtype)
+    intrinsics = intrinsics.to(dtype)
+    pnp = _pnp_starts(model_points, landmarks, mask, intrinsics) if init == "pnp" else None
+    if pnp is not None:
+        yaw_starts_deg = [0.0]  # one start per view
+    batch, starts = dims["B"], len(yaw_starts_deg)
+    yaws = torch.tensor(yaw_starts_deg, dtype=dtype, device=landmarks.device).deg2rad()
+    angles0 = torch.zeros(starts, batch, 3, dtype=dtype, device=landmarks.device)
+    angles0[..., 2] = yaws[:, None]
+    angles0 = angles0.reshape(-1, 3)
+
+    def rep(x: Tensor) -> Tensor:
+        return x.repeat(starts, *([1] * (x.dim() - 1)))
+
+    pts, targets, msk, K = rep(model_points), rep(landmarks), rep(mask), rep(intrinsics)
+    if pnp is not None:
+        x0 = pnp
+    else:
+        t0 = _initial_translation(pts, targets, msk, euler_to_rotation_matrix(angles0), K)
+        x0 = torch.cat([angles0, t0], dim=-1)
+
+    def residuals(x: Tensor) -> Tensor:
+        uv, _ = project_points(pts, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], K)
+        return landmark_residuals(uv, targets, msk).flatten(1)
+
+    result = levenberg_marquardt(
+        residuals,
+        x0,
+        jacobian_fn=lambda x: landmark_pose_jacobian(pts, x, K, msk),
+        max_iterations=max_iterations,
+        damping=1e-4,
+        ftol=1e-7,
+        xtol=1e-7,
+    )
+    cost = result.cost.view(starts, batch)
+    cost = torch.where(result.status.view(starts, batch) == LMStatus.FAILED, math.inf, cost)
+    best = cost.argmin(0)
+    pick = best * batch + torch.arange(batch, device=best.device)
+    x = result.x[pick]
+    # Wrap the angles into (-pi, pi].
+    angles = torch.atan2(torch.sin(x[:, :3]), torch.cos(x[:, :3]))
+    count = mask.sum(1).to(dtype)
+    final_cost = result.cost[pick]
+    return PoseEstimate(
+        angles=angles.to(out_dtype),
+        translation=x[:, 3:].to(out_dtype),
+        rotation=euler_to_rotation_matrix(angles).to(out_dtype),
+        cost=final_cost.to(out_dtype),
+        rms_px=(2.0 * final_cost / count).sqrt().to(out_dtype),
+        status=result.status[pick],
+    )
