@@ -99,7 +99,7 @@ def fit_head(
     fit_intrinsics: bool = True,
     fit_expression: bool = False,
     rounds: int = 3,
-    iterations_per_round: int = 6,
+    iterations_per_round: int = 4,
     jacobian_dtype: torch.dtype | None = torch.float32,
     initial_pose: tuple[Tensor, Tensor] | None = None,
     min_facing: float = 0.2,

@@ -1,0 +1,102 @@
+"""The recipe end to end on oracle maps of the built-in head (the ICT accuracy study is
+``benchmarks/accuracy_oracle.py``; its output is checked in as docs/accuracy.md)."""
+
+import pytest
+import torch
+
+from facenormals.eval import evaluate_reconstruction
+from facenormals.fitting import FitWeights, fit_head
+from facenormals.fitting.oracle import render_oracle_views
+from facenormals.models import builtin_head_model
+
+
+@pytest.fixture(scope="module")
+def model():
+    return builtin_head_model()
+
+
+@pytest.fixture(scope="module")
+def head(model):
+    g = torch.Generator().manual_seed(3)
+    return model.sample_shape_coeffs(1, generator=g)
+
+
+def p2p(model, vertices, truth):
+    report = evaluate_reconstruction(vertices.double(), model.faces, truth.double(), model.faces, model.face_region,
+                                     correspondences=model.landmarks)
+    return report.similarity.point_to_plane_rmse
+
+
+def test_single_view_beats_the_mean_head_and_landmarks_only(model, head, tmp_path):
+    obs = render_oracle_views(model, head, [20.0])
+    result = fit_head(obs.normal_maps[0], obs.landmarks[0], model, intrinsics=obs.intrinsics[0])
+    landmarks_only = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics,
+                              weights=FitWeights(normals=0.0))
+    truth = obs.vertices[0]
+    fit_err, mean_err = p2p(model, result.vertices[0], truth), p2p(model, model.mean, truth)
+    assert fit_err < 0.5 * mean_err
+    assert fit_err < p2p(model, landmarks_only.vertices[0], truth)
+    assert abs(float(result.angles[0, 0, 2]) - float(obs.angles[0, 0, 2])) < 0.03
+    assert result.landmark_rms_px[0, 0] < 1.0
+    assert set(result.energies) == {"normals", "landmarks", "prior", "intrinsics_prior"}
+    assert result.export(tmp_path / "fit.ply").exists()
+    assert "yaw" in result.summary()
+
+
+def test_three_views_are_not_worse_than_one(model, head):
+    one = render_oracle_views(model, head, [0.0])
+    three = render_oracle_views(model, head, [-45.0, 0.0, 45.0])
+    err1 = p2p(model, fit_head(one.normal_maps, one.landmarks, model, intrinsics=one.intrinsics).vertices[0], one.vertices[0])
+    fit3 = fit_head(three.normal_maps, three.landmarks, model, intrinsics=three.intrinsics)
+    assert fit3.angles.shape == (1, 3, 3) and fit3.intrinsics.shape == (1, 3, 3)
+    assert p2p(model, fit3.vertices[0], one.vertices[0]) <= err1 * 1.05
+
+
+def test_initial_yaw_off_by_30_degrees_still_converges(model, head):
+    obs = render_oracle_views(model, head, [25.0])
+    wrong = obs.angles.clone()
+    wrong[..., 2] -= torch.deg2rad(torch.tensor(30.0))
+    result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics,
+                      initial_pose=(wrong, obs.translation), rounds=4)
+    assert abs(float(result.angles[0, 0, 2] - obs.angles[0, 0, 2])) < 0.05
+
+
+def test_view_without_face_is_down_weighted_not_fatal(model, head):
+    obs = render_oracle_views(model, head, [-30.0, 30.0])
+    maps = obs.normal_maps.clone()
+    maps[:, 1] = 0.0  # the second view's map has no foreground
+    result = fit_head(maps, obs.landmarks, model, intrinsics=obs.intrinsics)
+    assert torch.isfinite(result.vertices).all()
+    assert p2p(model, result.vertices[0], obs.vertices[0]) < p2p(model, model.mean, obs.vertices[0])
+
+
+def test_view_without_landmarks_names_the_view(model, head):
+    obs = render_oracle_views(model, head, [0.0, 30.0])
+    landmarks = obs.landmarks.clone()
+    landmarks[:, 1] = float("nan")
+    with pytest.raises(ValueError, match="view 1 has 0 visible landmarks"):
+        fit_head(obs.normal_maps, landmarks, model, intrinsics=obs.intrinsics)
+
+
+def test_batch_of_subjects_matches_individual_fits(model):
+    g = torch.Generator().manual_seed(5)
+    heads = [render_oracle_views(model, model.sample_shape_coeffs(1, generator=g), [yaw]) for yaw in (-10.0, 25.0)]
+    maps = torch.cat([h.normal_maps for h in heads])
+    lms = torch.cat([h.landmarks for h in heads])
+    K = torch.cat([h.intrinsics for h in heads])
+    batch = fit_head(maps, lms, model, intrinsics=K)
+    for b, h in enumerate(heads):
+        alone = fit_head(h.normal_maps, h.landmarks, model, intrinsics=h.intrinsics)
+        torch.testing.assert_close(batch.vertices[b], alone.vertices[0], atol=0.05, rtol=0)
+
+
+def test_bad_input(model, head):
+    obs = render_oracle_views(model, head, [0.0], image_size=32)
+    maps = obs.normal_maps.clone()
+    maps[0, 0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="normal_maps: expected finite values"):
+        fit_head(maps, obs.landmarks, model)
+    with pytest.raises(ValueError, match=r"landmarks: expected shape \(B, V, 24, 2\)"):
+        fit_head(obs.normal_maps, obs.landmarks[..., :10, :], model)
+    with pytest.raises(ValueError, match="rounds"):
+        fit_head(obs.normal_maps, obs.landmarks, model, rounds=0)

@@ -1,0 +1,77 @@
+import math
+
+import pytest
+import torch
+
+from facenormals.fitting import landmark_pose_jacobian, prealign_pose
+from facenormals.geometry import euler_to_rotation_matrix, project_points
+from facenormals.models import builtin_head_model
+
+
+def observe(model, yaw_deg, pitch_deg=5.0, noise=0.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    y = model.sample_shape_coeffs(1, generator=g).double()
+    angles = torch.tensor([[0.05, math.radians(pitch_deg), math.radians(yaw_deg)]], dtype=torch.float64)
+    R = euler_to_rotation_matrix(angles)
+    t = torch.tensor([[3.0, -5.0, 650.0]], dtype=torch.float64) @ R[0]
+    K = torch.tensor([[400.0, 63.5, 63.5]], dtype=torch.float64)
+    uv, _ = project_points(model(y.to(model.mean))[:, model.landmark_indices].double(), R, t, K)
+    return uv + noise * torch.randn(uv.shape, generator=g, dtype=torch.float64), angles, t, K
+
+
+@pytest.mark.parametrize("init", ["pnp", "multistart"])
+@pytest.mark.parametrize("yaw", [-88.0, -60.0, -30.0, 0.0, 30.0, 60.0, 88.0])
+def test_converges_from_any_yaw(init, yaw):
+    model = builtin_head_model(dtype=torch.float64)
+    uv, angles, t, K = observe(model, yaw, noise=0.3)
+    est = prealign_pose(uv, model.mean[model.landmark_indices], K, init=init)
+    # the mean shape differs from the true head, so allow a few degrees
+    assert abs(math.degrees(float(est.angles[0, 2] - angles[0, 2]))) < 4.0
+    assert est.rms_px[0] < 3.0
+
+
+def test_exact_pose_for_exact_points():
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    angles = torch.tensor([[0.1, -0.2, 1.0]], dtype=torch.float64)
+    R = euler_to_rotation_matrix(angles)
+    t = torch.tensor([[0.0, 0.0, 600.0]], dtype=torch.float64) @ R[0]
+    K = torch.tensor([[500.0, 60.0, 70.0]], dtype=torch.float64)
+    uv, _ = project_points(points[None], R, t, K)
+    est = prealign_pose(uv, points, K)
+    torch.testing.assert_close(est.angles, angles, atol=1e-6, rtol=0)
+    torch.testing.assert_close(est.translation, t, atol=1e-3, rtol=0)
+
+
+def test_batch_of_views_and_missing_landmarks():
+    model = builtin_head_model(dtype=torch.float64)
+    views = [observe(model, yaw, seed=i) for i, yaw in enumerate((-50.0, 10.0, 70.0))]
+    uv = torch.cat([v[0] for v in views])
+    uv[1, :5] = float("nan")  # missing landmarks are NaN
+    est = prealign_pose(uv, model.mean[model.landmark_indices], torch.cat([v[3] for v in views]))
+    for i, (_, angles, _, _) in enumerate(views):
+        assert abs(float(est.angles[i, 2] - angles[0, 2])) < math.radians(4.0)
+
+
+def test_pose_jacobian_matches_autograd():
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices][None]
+    K = torch.tensor([[400.0, 63.5, 63.5]], dtype=torch.float64)
+    x = torch.tensor([[0.1, 0.2, -0.4, 5.0, -3.0, 640.0]], dtype=torch.float64)
+
+    def project(z):
+        uv, _ = project_points(points, euler_to_rotation_matrix(z[None, :3]), z[None, 3:], K)
+        return uv.reshape(-1)
+
+    torch.testing.assert_close(landmark_pose_jacobian(points, x, K)[0], torch.func.jacfwd(project)(x[0]))
+
+
+def test_too_few_landmarks_names_the_view():
+    model = builtin_head_model(dtype=torch.float64)
+    uv, _, _, K = observe(model, 0.0)
+    uv = uv.repeat(2, 1, 1)
+    uv[1, 3:] = float("nan")
+    with pytest.raises(ValueError, match="view 1 has 3 visible landmarks"):
+        prealign_pose(uv, model.mean[model.landmark_indices], K.repeat(2, 1))
+    with pytest.raises(ValueError, match="init"):
+        prealign_pose(uv[:1], model.mean[model.landmark_indices], K, init="guess")
