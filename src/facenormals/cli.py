@@ -21,15 +21,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         print("ICT-FaceKit not found: using the built-in procedural head (see docs/installation.md)")
     report = run_demo(model, seed=args.seed, out_dir=args.out)
     print()
-    print(f"model                           {report.model}")
-    print(f"visible-vertex RMSE, mean head  {report.mean_head_rmse_mm:7.2f} mm")
-    print(f"visible-vertex RMSE, fitted     {report.fitted_rmse_mm:7.2f} mm")
-    print(f"landmark error                  {report.landmark_error_px:7.2f} px")
-    print(f"normal error (visible)          {report.normal_error_deg:7.2f} deg")
-    print(f"yaw error                       {report.yaw_error_deg:7.2f} deg")
-    print(f"time                            {report.seconds:7.1f} s")
+    print("face region, after similarity alignment   point-to-plane RMSE   correspondence RMSE")
+    print(f"  mean head (baseline)                      {report.mean_head_rmse_mm:8.3f} mm          "
+          f"{report.mean_head_correspondence_mm:8.3f} mm")
+    print(f"  fitted head                               {report.fitted_rmse_mm:8.3f} mm          "
+          f"{report.fitted_correspondence_mm:8.3f} mm")
+    print(f"landmark error {report.landmark_error_px:.2f} px, yaw error {report.yaw_error_deg:.2f} deg, "
+          f"fit {report.fit_seconds * 1e3:.0f} ms, total {report.seconds:.1f} s")
     if report.mesh_path is not None:
-        print(f"wrote {report.mesh_path}")
+        print(f"wrote {report.mesh_path} and {report.overlay_path}")
     return 0
 
 
@@ -128,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="recover a random synthetic head from its normal map and landmarks")
     demo.add_argument("--model", default="auto", help="ict, builtin, auto (default) or a model .npz path")
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--out", default="out/demo", help="output folder for demo_fit.ply")
+    demo.add_argument("--out", default="out/demo", help="output folder for demo_fit.ply and demo_overlay.png")
     demo.set_defaults(func=_cmd_demo)
 
     models = sub.add_parser("models", help="list, show or fetch morphable models")

@@ -117,6 +117,8 @@ class HeadFitProblem:
         self.W_basis = model.shape_basis.permute(1, 2, 0).contiguous()  # (N, 3, K)
         self.E_basis = model.expression_basis.permute(1, 2, 0).contiguous() if self.E else None
         self.lm_index = model.landmark_indices
+        basis = self.W_basis if not self.E else torch.cat([self.W_basis, self.E_basis], dim=-1)
+        self.basis_landmarks = basis[self.lm_index]  # (L, 3, C)
         self.vis_index = torch.zeros(self.B, self.V, 1, dtype=torch.long, device=normal_maps.device)
         self.vis_valid = torch.zeros(self.B, self.V, 1, dtype=torch.bool, device=normal_maps.device)
         self.vertex_weights = torch.ones(self.B, self.V, 1, dtype=self.dtype, device=normal_maps.device)
@@ -182,6 +184,17 @@ class HeadFitProblem:
         self.vis_index = order.reshape(self.B, self.V, size)
         self.vis_valid = (torch.arange(size, device=x.device)[None] < counts[:, None]).reshape(self.B, self.V, size)
         self.vertex_weights = torch.ones(self.B, self.V, size, dtype=self.dtype, device=x.device)
+        # Per-round caches of the Jacobian: the union of visible vertices, its normal-Jacobian subset,
+        # and the basis rows of each view's visible vertices.
+        union = visible.any(0)
+        union_index = torch.nonzero(union).squeeze(1)
+        compact = torch.zeros(union.shape[0], dtype=torch.long, device=x.device)
+        compact[union_index] = torch.arange(union_index.shape[0], device=x.device)
+        self.vis_compact = compact[self.vis_index]
+        self.normals_subset = self.normals_jacobian.subset(union_index)
+        self.expression_subset = self.expression_jacobian.subset(union_index) if self.E else None
+        basis = self.W_basis if not self.E else torch.cat([self.W_basis, self.E_basis], dim=-1)
+        self.basis_visible = basis[self.vis_index.reshape(self.B * self.V, size)]  # (BV, S, 3, C)
         return visible.reshape(self.B, self.V, -1)
 
     @torch.no_grad()
@@ -258,22 +271,21 @@ class HeadFitProblem:
         angles = p["angles"].reshape(BV, 3)
         D = euler_rotation_derivatives(angles)  # (BV, 3, 3, 3)
 
-        normals, d_normals = self.normals_jacobian(verts)  # (B, N, 3), (B, N, 3, K)
+        normals_u, d_normals = self.normals_subset(verts)  # union of visible: (B, U, 3), (B, U, 3, K)
         if E:
-            _, d_normals_e = self.expression_jacobian(verts)
+            _, d_normals_e = self.expression_subset(verts)
             d_normals = torch.cat([d_normals, d_normals_e], dim=-1)
-        basis = self.W_basis if not E else torch.cat([self.W_basis, self.E_basis], dim=-1)  # (N, 3, K+E)
         C = Kdim + E
 
-        def view_rows(point_index: Tensor, with_normals: bool):
-            """dr/d(shared, view) for points ``point_index`` (BV, Q): projection part and normals part."""
+        def view_rows(point_index: Tensor, with_normals: bool, Wq: Tensor):
+            """dr/d(shared, view) for points ``point_index`` (BV, Q) with basis rows ``Wq`` (BV, Q, 3, C)."""
             Q = point_index.shape[1]
             q = torch.gather(verts_v, 1, point_index[..., None].expand(-1, -1, 3)) + t[:, None]  # p + t
             cam = q @ R.transpose(1, 2)
             P = projection_jacobian(cam, K)  # (BV, Q, 2, 3)
             PR = (P.unsqueeze(-1) * R[:, None, None]).sum(-2)  # (BV, Q, 2, 3)
-            Wq = basis[point_index]  # (BV, Q, 3, C)
-            A_shared = PR[..., 0:1] * Wq[:, :, None, 0] + PR[..., 1:2] * Wq[:, :, None, 1] + PR[..., 2:3] * Wq[:, :, None, 2]
+            A_shared = PR[..., 0:1] * Wq[:, :, None, 0]
+            A_shared.addcmul_(PR[..., 1:2], Wq[:, :, None, 1]).addcmul_(PR[..., 2:3], Wq[:, :, None, 2])
             DQ = torch.einsum("bjkl,bnl->bnkj", D, q)  # (BV, Q, 3, 3)
             A_angles = (P.unsqueeze(-1) * DQ.unsqueeze(-3)).sum(-2)  # (BV, Q, 2, 3)
             A_view = [A_angles, PR]
@@ -286,30 +298,37 @@ class HeadFitProblem:
             if not with_normals:
                 return A_shared, A_view, None, None
             b_index = torch.arange(B, device=x.device).repeat_interleave(V)[:, None]
-            dn = d_normals[b_index, point_index]  # (BV, Q, 3, C) model frame
-            n_q = normals[b_index, point_index]  # (BV, Q, 3)
-            Rdn = (R[:, None, :, :, None] * dn[:, :, None, :, :]).sum(3)  # (BV, Q, 3, C)
+            compact = self.vis_compact.reshape(BV, -1)
+            dn = d_normals[b_index, compact]  # (BV, Q, 3, C) model frame
+            n_q = normals_u[b_index, compact]  # (BV, Q, 3)
+            Rdn = R[:, None, :, 0, None] * dn[:, :, None, 0]  # (BV, Q, 3, C) = R @ dn
+            Rdn.addcmul_(R[:, None, :, 1, None], dn[:, :, None, 1]).addcmul_(R[:, None, :, 2, None], dn[:, :, None, 2])
             Dn = torch.einsum("bjkl,bnl->bnkj", D, n_q)  # (BV, Q, 3, 3): d n_c / d angle_j
             return A_shared, A_view, Rdn, Dn
 
         # Normal rows.
-        A_shared, A_view, Rdn, Dn = view_rows(index, True)
+        A_shared, A_view, Rdn, Dn = view_rows(index, True, self.basis_visible)
         pts_uv, _ = project_points(torch.gather(verts_v, 1, index[..., None].expand(-1, -1, 3)), R, t, K)
         maps = self.normal_maps.reshape(BV, 3, self.H, self.W)
         _, grad, inside = sample_bicubic_with_gradient(maps, pts_uv)  # grad (BV, S, 3, 2)
-        n_cam = torch.gather(normals[:, None].expand(-1, V, -1, -1).reshape(BV, -1, 3), 1,
-                             index[..., None].expand(-1, -1, 3)) @ R.transpose(1, 2)
+        b_index = torch.arange(B, device=x.device).repeat_interleave(V)[:, None]
+        n_cam = normals_u[b_index, self.vis_compact.reshape(BV, S)] @ R.transpose(1, 2)
         _, valid = normal_residuals(maps, pts_uv, n_cam, self.vis_valid.reshape(BV, S))
         scale = (self.weights.normals * self.view_weights.reshape(BV, 1) * self.vertex_weights.reshape(BV, S)).sqrt()
         scale = scale * valid.to(x.dtype)  # (BV, S)
-        J_n_shared = (grad @ A_shared - Rdn) * scale[..., None, None]  # (BV, S, 3, C)
-        dn_view = torch.zeros(BV, S, 3, self.per_view, dtype=x.dtype, device=x.device)
-        dn_view[..., 0:3] = Dn
-        J_n_view = (grad @ A_view - dn_view) * scale[..., None, None]  # (BV, S, 3, per_view)
+
+        def times_grad(A: Tensor) -> Tensor:  # ∇N (BV, S, 3, 2) @ A (BV, S, 2, D) without tiny matmuls
+            out = grad[..., 0:1] * A[:, :, None, 0]
+            return out.addcmul_(grad[..., 1:2], A[:, :, None, 1])
+
+        J_n_shared = times_grad(A_shared).sub_(Rdn).mul_(scale[..., None, None])  # (BV, S, 3, C)
+        J_n_view = times_grad(A_view)
+        J_n_view[..., 0:3] -= Dn
+        J_n_view.mul_(scale[..., None, None])  # (BV, S, 3, per_view)
 
         # Landmark rows.
         lm_index = self.lm_index[None].expand(BV, -1)
-        A_lm_shared, A_lm_view, _, _ = view_rows(lm_index, False)
+        A_lm_shared, A_lm_view, _, _ = view_rows(lm_index, False, self.basis_landmarks[None].expand(BV, -1, -1, -1))
         lm_scale = self.weights.landmarks**0.5 * self.landmark_mask.reshape(BV, L).to(x.dtype)
         J_z_shared = A_lm_shared * lm_scale[..., None, None]
         J_z_view = A_lm_view * lm_scale[..., None, None]

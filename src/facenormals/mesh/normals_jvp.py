@@ -34,13 +34,20 @@ def _tangent_edges(tangents: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
     return (t1 - t0).contiguous(), (t2 - t0).contiguous()
 
 
-def _jvp_one(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float) -> tuple[Tensor, Tensor]:
+def _jvp_one(
+    vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float,
+    corners: Tensor | None = None, num_out: int | None = None,
+) -> tuple[Tensor, Tensor]:
     """One mesh ``(N, 3)`` with tangent edges ``(F, 3, K)`` → normals ``(N, 3)``, Jacobian ``(N, 3, K)``.
 
     Rows (faces, vertices) hold ``3 K`` contiguous numbers, so the scatter into vertices is a row-wise
     ``index_add`` and products are fused with ``addcmul``: the K-fold work is a few passes over memory.
+    With ``corners`` (the faces' corners renumbered into ``num_out`` output rows, ``num_out - 1`` being
+    a discarded row) only a subset of the vertices is produced.
     """
-    num_vertices = vertices.shape[0]
+    if corners is None:
+        corners, num_out = faces, vertices.shape[0]
+    num_vertices = num_out
     v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
     e1, e2 = v1 - v0, v2 - v0  # (F, 3)
     c = torch.linalg.cross(e1, e2)
@@ -60,8 +67,8 @@ def _jvp_one(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: f
     s = vertices.new_zeros(num_vertices, 3)
     d_s = vertices.new_zeros(num_vertices, 3, d_e1.shape[-1])
     for k in range(3):
-        s.index_add_(0, faces[:, k], m)
-        d_s.index_add_(0, faces[:, k], d_m)
+        s.index_add_(0, corners[:, k], m)
+        d_s.index_add_(0, corners[:, k], d_m)
     s_norm = s.norm(dim=1, keepdim=True).clamp_min(eps)  # (N, 1)
     n = s / s_norm
     along = d_s[:, 0] * n[:, 0:1]
@@ -124,6 +131,18 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
     return _jvp(vertices, faces, d_e1, d_e2, eps)
 
 
+class _SubsetJacobian:
+    """Normals and Jacobian rows of a vertex subset (see :meth:`VertexNormalsJacobian.subset`)."""
+
+    def __init__(self, faces: Tensor, corners: Tensor, d_e1: Tensor, d_e2: Tensor, size: int, eps: float) -> None:
+        self.faces, self.corners, self.d_e1, self.d_e2, self.size, self.eps = faces, corners, d_e1, d_e2, size, eps
+
+    def __call__(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
+        d_e1, d_e2 = self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype)
+        outputs = [_jvp_one(v, self.faces, d_e1, d_e2, self.eps, self.corners, self.size + 1) for v in vertices]
+        return torch.stack([o[0][: self.size] for o in outputs]), torch.stack([o[1][: self.size] for o in outputs])
+
+
 class VertexNormalsJacobian(nn.Module):
     r"""Ring vertex normals and :math:`\partial n / \partial y` for a fixed basis ``(K, N, 3)``.
 
@@ -157,6 +176,29 @@ class VertexNormalsJacobian(nn.Module):
     def forward(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
         _check(vertices, self.faces)
         return _jvp(vertices, self.faces, self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype), self.eps)
+
+    def subset(self, vertex_index: Tensor) -> "_SubsetJacobian":
+        """A callable giving normals and Jacobian rows of ``vertex_index`` ``(S,)`` only: ``(B, S, 3)``
+        and ``(B, S, 3, K)``. Only the faces around those vertices are processed, which is what a fit
+        needs when it scores only the visible vertices.
+
+        Example:
+            >>> from facenormals.models import builtin_head_model
+            >>> model = builtin_head_model()
+            >>> jac = VertexNormalsJacobian(model.faces, model.shape_basis)
+            >>> v = model(torch.zeros(1, model.num_shape))
+            >>> n, dn = jac.subset(torch.tensor([5, 7]))(v)
+            >>> torch.allclose(dn, jac(v)[1][:, [5, 7]], atol=1e-6)
+            True
+        """
+        check_shape(vertex_index, ["S"], "vertex_index")
+        num_vertices = int(self.faces.max()) + 1 if self.faces.numel() else 0
+        index = vertex_index.to(device=self.faces.device, dtype=torch.long)
+        compact = torch.full((max(num_vertices, 1),), index.shape[0], dtype=torch.long, device=self.faces.device)
+        compact[index] = torch.arange(index.shape[0], device=self.faces.device)
+        selected = (compact[self.faces] < index.shape[0]).any(1)
+        return _SubsetJacobian(self.faces[selected], compact[self.faces[selected]], self.d_e1[selected],
+                               self.d_e2[selected], index.shape[0], self.eps)
 
     def extra_repr(self) -> str:
         return f"faces={self.faces.shape[0]}, components={self.d_e1.shape[-1]}"

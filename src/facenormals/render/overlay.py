@@ -1,0 +1,82 @@
+"""Dense-alignment overlays: projected vertices and landmarks drawn over the input image."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_shape
+
+__all__ = ["draw_alignment", "normal_map_to_image"]
+
+
+def normal_map_to_image(normal_map: Tensor) -> np.ndarray:
+    """A ``(3, H, W)`` camera-frame normal map as an RGB ``uint8`` image ``(H, W, 3)``.
+
+    Uses the common colour coding ``rgb = (n + 1) / 2`` with the y and z axes flipped, so that a
+    surface facing the camera is light blue and "up" is green; background stays black.
+
+    Example:
+        >>> nmap = torch.zeros(3, 2, 2); nmap[2] = -1.0
+        >>> normal_map_to_image(nmap)[0, 0].tolist()
+        [128, 128, 255]
+    """
+    check_shape(normal_map, [3, "H", "W"], "normal_map")
+    n = normal_map.detach().cpu().float()
+    foreground = n.norm(dim=0) > 0.5
+    rgb = torch.stack([n[0], -n[1], -n[2]]) * 0.5 + 0.5
+    rgb = torch.where(foreground[None], rgb, torch.zeros_like(rgb))
+    return (rgb.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+
+
+def draw_alignment(
+    image: np.ndarray,
+    vertex_pixels: Tensor,
+    landmark_pixels: Tensor | None = None,
+    visible: Tensor | None = None,
+    path: str | Path | None = None,
+    scale: int = 4,
+    max_points: int = 4000,
+) -> np.ndarray:
+    """Draw projected vertices (small dots) and landmarks (circles) over an RGB image.
+
+    Args:
+        image: ``(H, W, 3)`` or ``(H, W)`` uint8 RGB image.
+        vertex_pixels: ``(N, 2)`` projected vertices in the image's pixel coordinates.
+        landmark_pixels: optional ``(L, 2)`` landmarks (NaN rows are skipped).
+        visible: optional ``(N,)`` bool: only visible vertices are drawn.
+        path: if given, the overlay is written there as PNG.
+        scale: upsampling of the image before drawing, so that dots stay thin on small crops.
+        max_points: at most this many vertices are drawn (evenly subsampled).
+
+    Returns:
+        The ``(scale·H, scale·W, 3)`` RGB overlay.
+    """
+    import cv2
+
+    check_shape(vertex_pixels, ["N", 2], "vertex_pixels")
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise ValueError(f"image: expected a uint8 (H, W, 3) or (H, W) array, got {img.dtype} {img.shape}")
+    out = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    points = vertex_pixels.detach().cpu().double()
+    if visible is not None:
+        points = points[visible.detach().cpu()]
+    if points.shape[0] > max_points:
+        points = points[torch.linspace(0, points.shape[0] - 1, max_points).long()]
+    # pixel centres: pixel (0, 0) covers [-0.5, 0.5]; the upsampled centre is scale * (u + 0.5) - 0.5
+    for u, v in ((points + 0.5) * scale - 0.5).round().long().tolist():
+        cv2.circle(out, (u, v), max(1, scale // 4), (255, 220, 0), -1, lineType=cv2.LINE_AA)
+    if landmark_pixels is not None:
+        for u, v in ((landmark_pixels.detach().cpu().double() + 0.5) * scale - 0.5).tolist():
+            if np.isfinite(u) and np.isfinite(v):
+                cv2.circle(out, (int(round(u)), int(round(v))), scale, (255, 60, 60), 2, lineType=cv2.LINE_AA)
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), cv2.cvtColor(out, cv2.COLOR_RGB2BGR))
+    return out
