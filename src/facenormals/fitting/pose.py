@@ -164,8 +164,8 @@ def prealign_pose(
         >>> K = torch.tensor([[500.0, 64, 64]], dtype=torch.float64)
         >>> uv, _ = project_points(pts, R, torch.tensor([[0.0, 0, 600]], dtype=torch.float64) @ R[0], K)
         >>> est = prealign_pose(uv, pts[0], K)
-        >>> [round(v, 3) for v in est.angles[0].tolist()]
-        [0.1, -0.2, 1.2]
+        >>> print(*(round(v, 3) for v in est.angles[0].tolist()))
+        0.1 -0.2 1.2
     """
     dims = check_shape(landmarks, ["B", "L", 2], "landmarks")
     check_floating(landmarks, "landmarks")
