@@ -54,10 +54,14 @@ def test_three_views_are_not_worse_than_one(model, head):
 
 def test_initial_yaw_off_by_30_degrees_still_converges(model, head):
     obs = render_oracle_views(model, head, [25.0])
+    from facenormals.geometry import euler_to_rotation_matrix
+
     wrong = obs.angles.clone()
     wrong[..., 2] -= torch.deg2rad(torch.tensor(30.0))
-    result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics,
-                      initial_pose=(wrong, obs.translation), rounds=4)
+    # same head position in the camera, orientation off by 30 degrees of yaw: t' = R'^T R t
+    centre = euler_to_rotation_matrix(obs.angles[0]) @ obs.translation[0, :, :, None]
+    moved = (euler_to_rotation_matrix(wrong[0]).transpose(1, 2) @ centre)[..., 0][None]
+    result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, initial_pose=(wrong, moved))
     assert abs(float(result.angles[0, 0, 2] - obs.angles[0, 0, 2])) < 0.05
 
 

@@ -99,7 +99,8 @@ def fit_head(
     fit_intrinsics: bool = True,
     fit_expression: bool = False,
     rounds: int = 3,
-    iterations_per_round: int = 4,
+    iterations_per_round: int = 10,
+    ftol: float = 1e-2,
     jacobian_dtype: torch.dtype | None = torch.float32,
     initial_pose: tuple[Tensor, Tensor] | None = None,
     min_facing: float = 0.2,
@@ -123,7 +124,10 @@ def fit_head(
         fit_intrinsics: fit ``(f, u0, v0)`` per view (else they stay at the prior).
         fit_expression: also fit the model's expression coefficients.
         rounds: LM rounds; visibility is recomputed before each.
-        iterations_per_round: LM iterations per round.
+        iterations_per_round: the most LM iterations per round; a round stops earlier once an
+            accepted step lowers the energy by less than ``ftol`` (relative).
+        ftol: relative energy decrease that ends a round (visibility and robust weights are then
+            refreshed, so rounds need not converge tightly).
         jacobian_dtype: dtype of the normal equations (float32 is ~3× faster on CPU, see
             :func:`~facenormals.optim.levenberg_marquardt`).
         initial_pose: optional ``(angles, translation)`` per view to skip the landmark pre-alignment.
@@ -194,7 +198,7 @@ def fit_head(
             problem.update_robust_weights(x, robust_scale)
         result = levenberg_marquardt(
             problem.residuals, x, jacobian_fn=lambda z: problem.jacobian(z, jacobian_dtype),
-            max_iterations=iterations_per_round, damping=1e-4, ftol=1e-6, xtol=1e-7,
+            max_iterations=iterations_per_round, damping=1e-4, ftol=ftol, xtol=1e-7,
             jacobian_dtype=jacobian_dtype,
         )
         x = result.x

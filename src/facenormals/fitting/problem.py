@@ -38,7 +38,7 @@ from facenormals.geometry import (
 )
 from facenormals.mesh import VertexNormalsJacobian, vertex_normals
 from facenormals.models import MorphableModel
-from facenormals.render import rasterize_triangles, visible_vertices
+from facenormals.render import rasterize_triangles, splat_zbuffer, visible_vertices
 from facenormals.sampling import sample_bicubic_with_gradient
 
 __all__ = ["FitWeights", "HeadFitProblem"]
@@ -165,14 +165,19 @@ class HeadFitProblem:
     # ------------------------------------------------------------------------------------------
 
     @torch.no_grad()
-    def update_visibility(self, x: Tensor, min_facing: float = 0.0) -> Tensor:
+    def update_visibility(self, x: Tensor, min_facing: float = 0.0, exact: bool = True) -> Tensor:
         """Recompute which vertices each view sees (front-facing, not occluded, inside the image).
 
         Returns the ``(B, V, N)`` visibility and stores the padded visible indices used by the residuals.
+        ``exact`` uses the triangle rasteriser's z-buffer, else the faster vertex splat
+        (:func:`~facenormals.render.splat_zbuffer`).
         """
         _, verts, verts_v, R, t, K = self._views(x)
         pixels, depth = project_points(verts_v, R, t, K)
-        zbuffer = rasterize_triangles(pixels, depth, self.model.faces, (self.H, self.W)).depth
+        if exact:
+            zbuffer = rasterize_triangles(pixels, depth, self.model.faces, (self.H, self.W)).depth
+        else:
+            zbuffer = splat_zbuffer(pixels, depth, (self.H, self.W))
         normals = vertex_normals(verts, self.model.faces)
         normals_v = normals[:, None].expand(-1, self.V, -1, -1).reshape(self.B * self.V, -1, 3)
         camera_normals = normals_v @ R.transpose(1, 2)
@@ -187,6 +192,7 @@ class HeadFitProblem:
         # Per-round caches of the Jacobian: the union of visible vertices, its normal-Jacobian subset,
         # and the basis rows of each view's visible vertices.
         union = visible.any(0)
+        union[0] |= not bool(union.any())  # keep the caches non-empty when nothing is visible
         union_index = torch.nonzero(union).squeeze(1)
         compact = torch.zeros(union.shape[0], dtype=torch.long, device=x.device)
         compact[union_index] = torch.arange(union_index.shape[0], device=x.device)

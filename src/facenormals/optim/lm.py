@@ -155,6 +155,10 @@ def _check_options(
         raise ValueError(f"damping_mode: expected 'marquardt' or 'levenberg', got {damping_mode!r}")
     if jacobian_mode not in ("forward", "reverse"):
         raise ValueError(f"jacobian_mode: expected 'forward' or 'reverse', got {jacobian_mode!r}")
+    if isinstance(damping, Tensor):
+        if damping.dim() != 1 or not bool(torch.isfinite(damping).all()) or bool((damping < 0).any()):
+            raise ValueError(f"damping: expected a finite number >= 0 or a (B,) tensor of them, got {damping!r}")
+        damping = 0.0
     for name, value in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol), ("damping", damping)):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
@@ -172,7 +176,7 @@ def levenberg_marquardt(
     *,
     jacobian_fn: Callable[[Tensor], Tensor] | None = None,
     max_iterations: int = 100,
-    damping: float = 1e-3,
+    damping: float | Tensor = 1e-3,
     damping_mode: str = "marquardt",
     ftol: float = 1e-10,
     xtol: float = 1e-10,
@@ -248,7 +252,8 @@ def levenberg_marquardt(
         jacobian_fn: optional analytic Jacobian, mapping ``x`` ``(B, P)`` to
             :math:`\partial r / \partial x` of shape ``(B, M, P)``. Autograd is used without it.
         max_iterations: the maximum number of iterations (accepted or rejected steps).
-        damping: the initial damping factor λ (``0`` makes the first step Gauss-Newton).
+        damping: the initial damping factor λ (``0`` makes the first step Gauss-Newton), or one per
+            element ``(B,)``, e.g. :attr:`LMResult.damping` of a previous solve to warm-start it.
         damping_mode: ``"marquardt"`` (scaled by ``diag(JᵀJ)``, see above) or ``"levenberg"``
             (identity).
         ftol: relative cost reduction tolerance.
@@ -318,7 +323,7 @@ def _solve(
     x: Tensor,
     jacobian_fn: Callable[[Tensor], Tensor] | None,
     max_iterations: int,
-    damping: float,
+    damping: float | Tensor,
     marquardt: bool,
     ftol: float,
     xtol: float,
@@ -379,7 +384,11 @@ def _solve(
     initial_cost = cost.clone()
     active = torch.isfinite(cost)
     code = torch.where(active, code, _BAD_X0)
-    lam = torch.full((B,), float(damping), dtype=dtype, device=device)
+    if isinstance(damping, Tensor):
+        lam = damping.detach().to(dtype=dtype, device=device).clone()
+        check_shape(lam, [B], "damping")
+    else:
+        lam = torch.full((B,), float(damping), dtype=dtype, device=device)
     nu = torch.full((B,), 2.0, dtype=dtype, device=device)
     iterations = torch.zeros(B, dtype=torch.long, device=device)
     eye = torch.eye(P, dtype=dtype, device=device)

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from facenormals.core.check import check_floating, check_shape
 
-__all__ = ["visible_vertices"]
+__all__ = ["splat_zbuffer", "visible_vertices"]
 
 
 def visible_vertices(
@@ -67,3 +67,40 @@ def visible_vertices(
         surface = torch.gather(zbuffer.reshape(dims["B"], -1), 1, index)
         unoccluded = depth <= surface + tolerance
         return front & inside & unoccluded
+
+
+@torch.no_grad()
+def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], radius: int = 1) -> Tensor:
+    """A fast approximate z-buffer: the nearest vertex depth per pixel, spread over a ``(2r+1)²`` window.
+
+    Each vertex writes its depth to its nearest pixel (``scatter_reduce`` with ``amin``), then the
+    empty pixels between vertices take the minimum of their ``(2r+1)²`` neighbourhood. On a mesh whose vertices are
+    about as dense as the pixels (ICT-FaceKit at 128²) this agrees with the exact
+    :func:`~facenormals.render.rasterize_triangles` depth for the visibility test of
+    :func:`visible_vertices` except within a pixel or two of depth discontinuities, at a fraction of
+    the cost. Background is ``inf``.
+
+    Shape:
+        - pixels: :math:`(B, N, 2)`; depth: :math:`(B, N)` → :math:`(B, H, W)`
+
+    Example:
+        >>> z = splat_zbuffer(torch.tensor([[[1.0, 1.0], [1.2, 0.9]]]), torch.tensor([[5.0, 4.0]]), (3, 3), 0)
+        >>> z[0, 1, 1].item(), bool(torch.isinf(z[0, 0, 0]))
+        (4.0, True)
+    """
+    dims = check_shape(pixels, ["B", "N", 2], "pixels")
+    check_shape(depth, ["B", "N"], "depth", dims)
+    height, width = int(image_size[0]), int(image_size[1])
+    batch = dims["B"]
+    u, v = torch.round(pixels[..., 0]), torch.round(pixels[..., 1])
+    ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0) & torch.isfinite(depth)
+    index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
+    values = torch.where(ok, depth, torch.full_like(depth, float("inf")))
+    zbuf = torch.full((batch, height * width), float("inf"), dtype=depth.dtype, device=depth.device)
+    zbuf.scatter_reduce_(1, index, values, reduce="amin")
+    zbuf = zbuf.view(batch, 1, height, width)
+    if radius > 0:  # fill only the empty pixels: a min-filter everywhere would hide sloped surfaces
+        size = 2 * radius + 1
+        filled = -torch.nn.functional.max_pool2d(-zbuf, size, stride=1, padding=radius)
+        zbuf = torch.where(torch.isinf(zbuf), filled, zbuf)
+    return zbuf.view(batch, height, width)
