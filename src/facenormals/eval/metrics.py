@@ -42,7 +42,6 @@ __all__ = [
 
 def _check_points(x: object, name: str, shape, dims=None) -> dict[str, int]:
     dims = check_shape(x, shape, name, dims)
-    assert isinstance(x, Tensor)
     check_floating(x, name)
     check_finite(x, name)
     return dims
@@ -50,7 +49,6 @@ def _check_points(x: object, name: str, shape, dims=None) -> dict[str, int]:
 
 def _check_faces(faces: object, num_vertices: int, name: str = "reconstruction_faces") -> np.ndarray:
     dims = check_shape(faces, ["F", 3], name)
-    assert isinstance(faces, Tensor)
     if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
         raise ValueError(f"{name}: expected an integer tensor, got dtype {faces.dtype}")
     if dims["F"] == 0:

@@ -203,7 +203,6 @@ def _resolve_pairs(
 
 def _check_mesh(vertices: object, faces: object, prefix: str) -> tuple[Tensor, np.ndarray]:
     check_shape(vertices, ["N", 3], f"{prefix}_vertices")
-    assert isinstance(vertices, Tensor)
     check_floating(vertices, f"{prefix}_vertices")
     check_finite(vertices, f"{prefix}_vertices")
     return vertices.detach().cpu().double(), _check_faces(faces, vertices.shape[0], f"{prefix}_faces")
@@ -397,7 +396,6 @@ def summarise(
     if baseline_reports is not None:
         baseline = _mean_metrics(_check_reports(baseline_reports, "baseline_reports", len(reports)))
         mean = out["mean"]
-        assert isinstance(mean, dict)
         ratio: dict[str, dict[str, float | None]] = {}
         for alignment in ALIGNMENTS:
             ratio[alignment] = {}

@@ -63,7 +63,6 @@ def _check_mode(mode: object) -> str:
 
 def _check_faces(faces: object, num_vertices: int) -> None:
     check_shape(faces, ["F", 3], "faces")
-    assert isinstance(faces, Tensor)
     if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
         raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
     if torch.compiler.is_compiling() or faces.numel() == 0:
@@ -78,7 +77,6 @@ def _check_faces(faces: object, num_vertices: int) -> None:
 def _check_vertices(vertices: object, num_vertices: int | None = None) -> None:
     dims = None if num_vertices is None else {"N": num_vertices}
     check_shape(vertices, ["B", "N", 3], "vertices", dims)
-    assert isinstance(vertices, Tensor)
     check_floating(vertices, "vertices")
 
 
