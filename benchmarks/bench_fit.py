@@ -81,6 +81,12 @@ def main() -> None:
     rows.append((f"one LM round, facenormals ({int(ours.iterations[0])} iterations)", ours_t * 1e3, ""))
     rows.append((f"one LM round, scipy least_squares trf ({sp.njev} Jacobians)", scipy_t * 1e3, ">= 10x ours"))
 
+    # Analytic vs autograd Jacobian of the same residuals.
+    analytic_t = statistics.median(timed(lambda: problem.jacobian(x0, torch.float32))[0] for _ in range(5))
+    autograd_t = statistics.median(timed(lambda: torch.func.jacfwd(problem.residuals)(x0))[0] for _ in range(2))
+    rows.append(("Jacobian, analytic", analytic_t * 1e3, ""))
+    rows.append(("Jacobian, autograd (torch.func.jacfwd)", autograd_t * 1e3, ""))
+
     # 4. Batch of subjects.
     batch = heads[: args.batch]
     maps = torch.cat([b.normal_maps for b in batch])
