@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from facenormals.energy import landmark_residuals, normal_residuals, prior_residuals
+from facenormals.energy.residuals import _foreground as map_foreground
 from facenormals.geometry import (
     euler_rotation_derivatives,
     euler_to_rotation_matrix,
@@ -302,24 +303,24 @@ class HeadFitProblem:
                 A_view.append(torch.cat([d_f.unsqueeze(-1), eye], dim=-1))
             A_view = torch.cat(A_view, dim=-1)  # (BV, Q, 2, per_view)
             if not with_normals:
-                return A_shared, A_view, None, None
-            b_index = torch.arange(B, device=x.device).repeat_interleave(V)[:, None]
+                return A_shared, A_view, None, None, None
             compact = self.vis_compact.reshape(BV, -1)
-            dn = d_normals[b_index, compact]  # (BV, Q, 3, C) model frame
-            n_q = normals_u[b_index, compact]  # (BV, Q, 3)
+            # per (subject, view) row selection; index_select is several times faster than
+            # broadcast advanced indexing on these (U, 3, C) blocks
+            dn = torch.stack([d_normals[i // V].index_select(0, compact[i]) for i in range(BV)])  # (BV, Q, 3, C)
+            n_q = torch.stack([normals_u[i // V].index_select(0, compact[i]) for i in range(BV)])  # (BV, Q, 3)
             Rdn = R[:, None, :, 0, None] * dn[:, :, None, 0]  # (BV, Q, 3, C) = R @ dn
             Rdn.addcmul_(R[:, None, :, 1, None], dn[:, :, None, 1]).addcmul_(R[:, None, :, 2, None], dn[:, :, None, 2])
             Dn = torch.einsum("bjkl,bnl->bnkj", D, n_q)  # (BV, Q, 3, 3): d n_c / d angle_j
-            return A_shared, A_view, Rdn, Dn
+            return A_shared, A_view, Rdn, Dn, n_q
 
         # Normal rows.
-        A_shared, A_view, Rdn, Dn = view_rows(index, True, self.basis_visible)
+        A_shared, A_view, Rdn, Dn, n_vis = view_rows(index, True, self.basis_visible)
         pts_uv, _ = project_points(torch.gather(verts_v, 1, index[..., None].expand(-1, -1, 3)), R, t, K)
         maps = self.normal_maps.reshape(BV, 3, self.H, self.W)
         _, grad, inside = sample_bicubic_with_gradient(maps, pts_uv)  # grad (BV, S, 3, 2)
-        b_index = torch.arange(B, device=x.device).repeat_interleave(V)[:, None]
-        n_cam = normals_u[b_index, self.vis_compact.reshape(BV, S)] @ R.transpose(1, 2)
-        _, valid = normal_residuals(maps, pts_uv, n_cam, self.vis_valid.reshape(BV, S))
+        # the rows normal_residuals keeps: visible, inside the image, on the map's foreground
+        valid = self.vis_valid.reshape(BV, S) & inside & map_foreground(maps, pts_uv)
         scale = (self.weights.normals * self.view_weights.reshape(BV, 1) * self.vertex_weights.reshape(BV, S)).sqrt()
         scale = scale * valid.to(x.dtype)  # (BV, S)
 
@@ -334,7 +335,7 @@ class HeadFitProblem:
 
         # Landmark rows.
         lm_index = self.lm_index[None].expand(BV, -1)
-        A_lm_shared, A_lm_view, _, _ = view_rows(lm_index, False, self.basis_landmarks[None].expand(BV, -1, -1, -1))
+        A_lm_shared, A_lm_view, _, _, _ = view_rows(lm_index, False, self.basis_landmarks[None].expand(BV, -1, -1, -1))
         lm_scale = self.weights.landmarks**0.5 * self.landmark_mask.reshape(BV, L).to(x.dtype)
         J_z_shared = A_lm_shared * lm_scale[..., None, None]
         J_z_view = A_lm_view * lm_scale[..., None, None]
@@ -342,8 +343,10 @@ class HeadFitProblem:
         rows_per_view = 3 * S + 2 * L
         prior_rows = Kdim + E + (3 * V if self.fit_intrinsics else 0)
         J = torch.zeros(B, V * rows_per_view + prior_rows, self.P, dtype=dtype, device=x.device)
+        J_n_shared, J_n_view = J_n_shared.view(B, V, S, 3, C), J_n_view.view(B, V, S, 3, self.per_view)
+        J_z_shared, J_z_view = J_z_shared.view(B, V, L, 2, C), J_z_view.view(B, V, L, 2, self.per_view)
         for v in range(V):
-            sel = torch.arange(B, device=x.device) * V + v
+            sel = (slice(None), v)
             r0 = v * rows_per_view
             c0 = Kdim + E + v * self.per_view
             block = J[:, r0 : r0 + 3 * S]

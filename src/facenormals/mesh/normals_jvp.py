@@ -36,7 +36,7 @@ def _tangent_edges(tangents: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
 
 def _jvp_one(
     vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float,
-    corners: Tensor | None = None, num_out: int | None = None,
+    corners: Tensor | None = None, num_out: int | None = None, work: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """One mesh ``(N, 3)`` with tangent edges ``(F, 3, K)`` → normals ``(N, 3)``, Jacobian ``(N, 3, K)``.
 
@@ -53,7 +53,7 @@ def _jvp_one(
     c = torch.linalg.cross(e1, e2)
     c_norm = c.norm(dim=1, keepdim=True).clamp_min(eps)  # (F, 1)
     m = c / c_norm
-    d_c = torch.empty_like(d_e1)
+    d_c = torch.empty_like(d_e1) if work is None else work  # a reused buffer avoids page faults
     for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
         # (ė1 × e2 + e1 × ė2)_i = ė1_j e2_k − ė1_k e2_j + e1_j ė2_k − e1_k ė2_j
         out = d_c[:, i]
@@ -136,10 +136,14 @@ class _SubsetJacobian:
 
     def __init__(self, faces: Tensor, corners: Tensor, d_e1: Tensor, d_e2: Tensor, size: int, eps: float) -> None:
         self.faces, self.corners, self.d_e1, self.d_e2, self.size, self.eps = faces, corners, d_e1, d_e2, size, eps
+        self._work: Tensor | None = None  # scratch for the face-normal derivatives, never returned
 
     def __call__(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
         d_e1, d_e2 = self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype)
-        outputs = [_jvp_one(v, self.faces, d_e1, d_e2, self.eps, self.corners, self.size + 1) for v in vertices]
+        if self._work is None or self._work.dtype != d_e1.dtype or self._work.device != d_e1.device:
+            self._work = torch.empty_like(d_e1)
+        outputs = [_jvp_one(v, self.faces, d_e1, d_e2, self.eps, self.corners, self.size + 1, self._work)
+                   for v in vertices]
         return torch.stack([o[0][: self.size] for o in outputs]), torch.stack([o[1][: self.size] for o in outputs])
 
 

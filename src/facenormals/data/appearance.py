@@ -1,0 +1,174 @@
+"""Colours and lights: skin tones, hair and eye colours, colour temperature, procedural variation.
+
+All colours handed to the renderer are **linear** RGB; palettes are written in sRGB and converted
+with :func:`srgb_to_linear`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facenormals.data.render import Lighting
+
+__all__ = [
+    "HAIR_COLORS",
+    "SKIN_TONES",
+    "color_temperature",
+    "fourier_noise",
+    "sample_lighting",
+    "skin_albedo",
+    "srgb_to_linear",
+]
+
+#: The ten Monk Skin Tone scale swatches (sRGB 0..255), lightest to darkest.
+SKIN_TONES = np.array([
+    (246, 237, 228), (243, 231, 219), (247, 234, 208), (234, 218, 186), (215, 189, 150),
+    (160, 126, 86), (130, 92, 67), (96, 65, 52), (58, 49, 42), (41, 36, 32),
+], dtype=np.float64) / 255.0  # fmt: skip
+
+#: Natural hair colours (sRGB), black to white, plus a few dyed ones at the end.
+HAIR_COLORS = np.array([
+    (20, 17, 15), (38, 28, 22), (59, 41, 30), (86, 60, 40), (120, 86, 55), (160, 120, 75),
+    (200, 165, 110), (225, 200, 150), (140, 60, 30), (175, 90, 45), (150, 150, 150), (215, 215, 210),
+    (120, 30, 60), (40, 60, 130), (180, 60, 120),
+], dtype=np.float64) / 255.0  # fmt: skip
+_HAIR_WEIGHTS = np.array([10, 10, 9, 8, 6, 4, 3, 2, 2, 2, 3, 2, 0.5, 0.5, 0.5], dtype=np.float64)
+
+#: Iris colours (sRGB): browns, hazel, green, blue, grey.
+IRIS_COLORS = np.array([
+    (60, 35, 20), (90, 55, 30), (120, 80, 40), (110, 100, 50), (70, 110, 70), (70, 110, 160), (110, 140, 170),
+    (100, 105, 110),
+], dtype=np.float64) / 255.0  # fmt: skip
+_IRIS_WEIGHTS = np.array([10, 8, 4, 3, 2, 3, 2, 1], dtype=np.float64)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB in ``[0, 1]`` to linear RGB (the standard piecewise curve)."""
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def color_temperature(kelvin: float) -> np.ndarray:
+    """Linear-RGB colour of a black body at ``kelvin`` (1000..40000 K), scaled to a maximum of 1.
+
+    Uses Tanner Helland's fit of the CIE 1964 black-body colours (sRGB), linearised.
+
+    Example:
+        >>> np.round(color_temperature(6600), 2)
+        array([1., 1., 1.])
+    """
+    t = float(np.clip(kelvin, 1000.0, 40000.0)) / 100.0
+    if t <= 66:
+        r = 255.0
+        g = 99.4708025861 * np.log(t) - 161.1195681661
+        b = 0.0 if t <= 19 else 138.5177312231 * np.log(t - 10) - 305.0447927307
+    else:
+        r = 329.698727446 * (t - 60) ** -0.1332047592
+        g = 288.1221695283 * (t - 60) ** -0.0755148492
+        b = 255.0
+    rgb = srgb_to_linear(np.clip([r, g, b], 0.0, 255.0) / 255.0)
+    return rgb / rgb.max()
+
+
+def fourier_noise(points: np.ndarray, rng: np.random.Generator, wavelength: float, terms: int = 12) -> np.ndarray:
+    """Smooth random field on ``points`` ``(N, 3)`` (mm): a sum of random plane waves, unit variance.
+
+    The waves have random directions and wavelengths around ``wavelength`` mm.
+    """
+    directions = rng.normal(size=(terms, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    k = 2.0 * np.pi / (wavelength * rng.uniform(0.7, 1.4, size=(terms, 1)))
+    phase = rng.uniform(0.0, 2.0 * np.pi, size=terms)
+    return np.sin(points @ (directions * k).T + phase).sum(axis=1) * np.sqrt(2.0 / terms)
+
+
+def sample_skin_tone(rng: np.random.Generator) -> np.ndarray:
+    """A base skin colour (linear RGB) anywhere along the Monk scale, with a small hue jitter."""
+    position = rng.uniform(0.0, len(SKIN_TONES) - 1.0)
+    k = min(int(position), len(SKIN_TONES) - 2)
+    srgb = SKIN_TONES[k] * (1 - (position - k)) + SKIN_TONES[k + 1] * (position - k)
+    srgb = srgb * np.array([1.0 + rng.normal(0, 0.03), 1.0 + rng.normal(0, 0.025), 1.0 + rng.normal(0, 0.04)])
+    return srgb_to_linear(np.clip(srgb, 0.0, 1.0))
+
+
+def sample_hair_color(rng: np.random.Generator) -> np.ndarray:
+    """A hair colour (linear RGB), natural colours far more likely than dyed ones."""
+    k = rng.choice(len(HAIR_COLORS), p=_HAIR_WEIGHTS / _HAIR_WEIGHTS.sum())
+    return srgb_to_linear(np.clip(HAIR_COLORS[k] * rng.uniform(0.85, 1.15, size=3), 0.0, 1.0))
+
+
+def sample_iris_color(rng: np.random.Generator) -> np.ndarray:
+    k = rng.choice(len(IRIS_COLORS), p=_IRIS_WEIGHTS / _IRIS_WEIGHTS.sum())
+    return srgb_to_linear(np.clip(IRIS_COLORS[k] * rng.uniform(0.8, 1.2, size=3), 0.0, 1.0))
+
+
+def skin_albedo(
+    points: np.ndarray, regions: dict[str, np.ndarray], rng: np.random.Generator, brow_color: np.ndarray
+) -> tuple[np.ndarray, dict[str, float]]:
+    """Per-vertex skin albedo ``(N, 3)`` (linear RGB) with procedural variation.
+
+    A base tone from the Monk scale, modulated by smooth noise at three scales (blotches, mottling,
+    fine grain), redder cheeks, nose and ears, lips, darker under-eyes, eyebrows, and optionally
+    stubble/beard and freckles.
+
+    Returns:
+        ``(albedo, info)`` where ``info`` holds the sampled amounts (for debugging and figures).
+    """
+    tone = sample_skin_tone(rng)
+    n = len(points)
+    darkness = 1.0 - float(np.mean(tone) ** 0.5)
+    variation = (
+        0.06 * fourier_noise(points, rng, 60.0)
+        + 0.04 * fourier_noise(points, rng, 15.0)
+        + 0.03 * rng.uniform(0.3, 1.0) * fourier_noise(points, rng, 4.0, terms=24)
+    )
+    albedo = tone[None, :] * (1.0 + variation[:, None])
+    redness = np.array([1.0, 0.78, 0.78])
+    flush = rng.uniform(0.0, 0.45) * regions["cheeks"] + rng.uniform(0.05, 0.35) * regions["nose"] + 0.3 * regions["ears"]
+    albedo *= 1.0 - flush[:, None] * (1.0 - redness)[None, :]
+    albedo *= 1.0 - rng.uniform(0.0, 0.3) * regions["under_eyes"][:, None] * np.array([1.0, 1.1, 1.0])
+    lip = tone * np.array([0.75, 0.42, 0.45]) * rng.uniform(0.7, 1.1)
+    if rng.random() < 0.15:  # lipstick
+        lip = srgb_to_linear(np.clip(rng.uniform([0.4, 0.0, 0.05], [0.85, 0.2, 0.35]), 0, 1))
+    w = np.clip(regions["lips"] * rng.uniform(0.6, 1.0), 0, 1)[:, None]
+    albedo = albedo * (1 - w) + lip[None, :] * w
+    brow_density = rng.uniform(0.3, 0.95) * (1.0 - 0.5 * darkness)
+    w = np.clip(regions["brows"] * brow_density * (0.75 + 0.25 * fourier_noise(points, rng, 2.0, terms=16)), 0, 1)[:, None]
+    albedo = albedo * (1 - w) + brow_color[None, :] * w
+    beard = 0.0
+    if rng.random() < 0.3:
+        beard = rng.uniform(0.15, 0.9)
+        w = np.clip(regions["beard"] * beard * (0.8 + 0.2 * fourier_noise(points, rng, 1.5, terms=16)), 0, 1)[:, None]
+        albedo = albedo * (1 - w) + brow_color[None, :] * w
+    freckles = 0.0
+    if rng.random() < 0.15:
+        freckles = rng.uniform(0.1, 0.3)
+        spots = np.clip(fourier_noise(points, rng, 3.0, terms=24) - 1.2, 0, None) * regions["face"]
+        albedo *= 1.0 - freckles * np.clip(spots, 0, 1)[:, None] * np.array([0.8, 1.0, 1.2])[None, :]
+    info = {"tone": float(np.mean(tone)), "beard": beard, "freckles": freckles, "vertices": n}
+    return np.clip(albedo, 0.0, 1.0).astype(np.float32), info
+
+
+def sample_lighting(rng: np.random.Generator, num_lights: tuple[int, int] = (1, 3),
+                    temperature: tuple[float, float] = (2500.0, 9000.0)) -> Lighting:
+    """Ambient light plus 1–3 directional lights with random directions, intensities and colour temperatures.
+
+    Directions are in the camera frame (x right, y down, z forward) and point from the subject to the
+    light; the key light comes from the camera's side of the subject, fill lights from anywhere
+    in front, slightly favouring above.
+    """
+    count = int(rng.integers(num_lights[0], num_lights[1] + 1))
+    directions, colors = [], []
+    for k in range(count):
+        while True:
+            d = rng.normal(size=3)
+            d[1] -= 0.4  # from above more often
+            d[2] = -abs(d[2]) * (1.5 if k == 0 else 1.0) if rng.random() < (0.97 if k == 0 else 0.8) else abs(d[2])
+            norm = np.linalg.norm(d)
+            if norm > 1e-3:
+                break
+        directions.append(d / norm)
+        intensity = rng.uniform(0.6, 1.5) if k == 0 else rng.uniform(0.1, 0.8)
+        colors.append(color_temperature(rng.uniform(*temperature)) * intensity)
+    ambient = color_temperature(rng.uniform(*temperature)) * rng.uniform(0.12, 0.55)
+    return Lighting(ambient=ambient, directions=np.asarray(directions), colors=np.asarray(colors))
