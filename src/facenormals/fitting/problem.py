@@ -190,16 +190,21 @@ class HeadFitProblem:
         self.vis_index = order.reshape(self.B, self.V, size)
         self.vis_valid = (torch.arange(size, device=x.device)[None] < counts[:, None]).reshape(self.B, self.V, size)
         self.vertex_weights = torch.ones(self.B, self.V, size, dtype=self.dtype, device=x.device)
-        # Per-round caches of the Jacobian: the union of visible vertices, its normal-Jacobian subset,
-        # and the basis rows of each view's visible vertices.
-        union = visible.any(0)
-        union[0] |= not bool(union.any())  # keep the caches non-empty when nothing is visible
-        union_index = torch.nonzero(union).squeeze(1)
-        compact = torch.zeros(union.shape[0], dtype=torch.long, device=x.device)
-        compact[union_index] = torch.arange(union_index.shape[0], device=x.device)
-        self.vis_compact = compact[self.vis_index]
-        self.normals_subset = self.normals_jacobian.subset(union_index)
-        self.expression_subset = self.expression_jacobian.subset(union_index) if self.E else None
+        # Per-round caches of the Jacobian: per subject, the union of its views' visible vertices and
+        # the normal-Jacobian restricted to it, and the basis rows of each view's visible vertices.
+        per_subject = visible.reshape(self.B, self.V, -1).any(1)  # (B, N)
+        self.vis_compact = torch.zeros_like(self.vis_index)
+        self.normals_subsets, self.expression_subsets = [], []
+        for b in range(self.B):
+            union = per_subject[b].clone()
+            union[0] |= not bool(union.any())  # keep the caches non-empty when nothing is visible
+            union_index = torch.nonzero(union).squeeze(1)
+            compact = torch.zeros(union.shape[0], dtype=torch.long, device=x.device)
+            compact[union_index] = torch.arange(union_index.shape[0], device=x.device)
+            self.vis_compact[b] = compact[self.vis_index[b]]
+            self.normals_subsets.append(self.normals_jacobian.subset(union_index))
+            if self.E:
+                self.expression_subsets.append(self.expression_jacobian.subset(union_index))
         basis = self.W_basis if not self.E else torch.cat([self.W_basis, self.E_basis], dim=-1)
         self.basis_visible = basis[self.vis_index.reshape(self.B * self.V, size)]  # (BV, S, 3, C)
         return visible.reshape(self.B, self.V, -1)
@@ -278,10 +283,14 @@ class HeadFitProblem:
         angles = p["angles"].reshape(BV, 3)
         D = euler_rotation_derivatives(angles)  # (BV, 3, 3, 3)
 
-        normals_u, d_normals = self.normals_subset(verts)  # union of visible: (B, U, 3), (B, U, 3, K)
-        if E:
-            _, d_normals_e = self.expression_subset(verts)
-            d_normals = torch.cat([d_normals, d_normals_e], dim=-1)
+        # per subject: the union of its visible vertices, (U_b, 3) normals and (U_b, 3, C) derivatives
+        normals_u, d_normals = [], []
+        for b in range(B):
+            n_b, dn_b = self.normals_subsets[b](verts[b : b + 1])
+            if E:
+                dn_b = torch.cat([dn_b, self.expression_subsets[b](verts[b : b + 1])[1]], dim=-1)
+            normals_u.append(n_b[0])
+            d_normals.append(dn_b[0])
         C = Kdim + E
 
         def view_rows(point_index: Tensor, with_normals: bool, Wq: Tensor):
