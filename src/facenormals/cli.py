@@ -122,6 +122,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from facenormals.data import SynthConfig, write_dataset
+
+    config = SynthConfig(identity_scale=args.identity_scale, background_folders=tuple(args.backgrounds))
+    summary = write_dataset(args.out, args.count, workers=args.workers, seed=args.seed, model_spec=args.model,
+                            shard_size=args.shard_size, progress=not args.quiet, rank=args.rank,
+                            world_size=args.world_size, config=config)
+    print(f"{summary.root}: wrote {summary.shards_written} shard(s) ({summary.samples} samples, "
+          f"{summary.samples_per_second:.1f}/s), {summary.shards_skipped} already complete")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facenormals", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -150,6 +162,20 @@ def build_parser() -> argparse.ArgumentParser:
                           help="JSON name -> vertex index for a prediction in another topology")
     evaluate.add_argument("--json", default=None, help="also write the report as JSON")
     evaluate.set_defaults(func=_cmd_evaluate)
+
+    synth = sub.add_parser("synth", help="render synthetic training data (images, normal maps, landmarks) into shards")
+    synth.add_argument("--count", type=int, required=True, help="number of samples")
+    synth.add_argument("--out", required=True, help="output folder; finished shards are skipped on a rerun")
+    synth.add_argument("--workers", type=int, default=1)
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--model", default="auto", help="ict, builtin, auto or a model path")
+    synth.add_argument("--shard-size", type=int, default=1000)
+    synth.add_argument("--identity-scale", type=float, default=1.0, help="scale of the identity coefficients' spread")
+    synth.add_argument("--backgrounds", action="append", default=[], metavar="DIR", help="folders of background photos")
+    synth.add_argument("--rank", type=int, default=None, help="this process's rank (default: $RANK)")
+    synth.add_argument("--world-size", type=int, default=None, help="number of ranks (default: $WORLD_SIZE)")
+    synth.add_argument("--quiet", action="store_true", help="no progress bar")
+    synth.set_defaults(func=_cmd_synth)
     return parser
 
 

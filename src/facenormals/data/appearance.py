@@ -6,6 +6,8 @@ with :func:`srgb_to_linear`.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from facenormals.data.render import Lighting
@@ -54,8 +56,10 @@ def color_temperature(kelvin: float) -> np.ndarray:
     Uses Tanner Helland's fit of the CIE 1964 black-body colours (sRGB), linearised.
 
     Example:
-        >>> np.round(color_temperature(6600), 2)
+        >>> np.round(color_temperature(6600), 1)  # about white
         array([1., 1., 1.])
+        >>> bool(color_temperature(3000)[2] < 0.3)  # warm light has little blue
+        True
     """
     t = float(np.clip(kelvin, 1000.0, 40000.0)) / 100.0
     if t <= 66:
@@ -91,10 +95,20 @@ def sample_skin_tone(rng: np.random.Generator) -> np.ndarray:
     return srgb_to_linear(np.clip(srgb, 0.0, 1.0))
 
 
-def sample_hair_color(rng: np.random.Generator) -> np.ndarray:
-    """A hair colour (linear RGB), natural colours far more likely than dyed ones."""
+_NATURAL_HAIR = 12  # HAIR_COLORS[:12] are natural, the rest dyed
+
+
+def sample_hair_color(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A hair colour and a matching eyebrow/beard colour (linear RGB).
+
+    Natural colours are far more likely than dyed ones; brows and beards take a darker natural
+    colour (dyed hair gets brown brows, grey and blond hair a little darker brows).
+    """
     k = rng.choice(len(HAIR_COLORS), p=_HAIR_WEIGHTS / _HAIR_WEIGHTS.sum())
-    return srgb_to_linear(np.clip(HAIR_COLORS[k] * rng.uniform(0.85, 1.15, size=3), 0.0, 1.0))
+    hair = srgb_to_linear(np.clip(HAIR_COLORS[k] * rng.uniform(0.85, 1.15, size=3), 0.0, 1.0))
+    natural = k if k < _NATURAL_HAIR else int(rng.integers(0, 5))
+    brows = srgb_to_linear(np.clip(HAIR_COLORS[natural] * rng.uniform(0.6, 0.9), 0.0, 1.0))
+    return hair, brows
 
 
 def sample_iris_color(rng: np.random.Generator) -> np.ndarray:
@@ -103,50 +117,47 @@ def sample_iris_color(rng: np.random.Generator) -> np.ndarray:
 
 
 def skin_albedo(
-    points: np.ndarray, regions: dict[str, np.ndarray], rng: np.random.Generator, brow_color: np.ndarray
-) -> tuple[np.ndarray, dict[str, float]]:
+    noise: Callable[[np.random.Generator, str], np.ndarray], regions: dict[str, np.ndarray], rng: np.random.Generator,
+    brow_color: np.ndarray,
+) -> np.ndarray:
     """Per-vertex skin albedo ``(N, 3)`` (linear RGB) with procedural variation.
 
     A base tone from the Monk scale, modulated by smooth noise at three scales (blotches, mottling,
-    fine grain), redder cheeks, nose and ears, lips, darker under-eyes, eyebrows, and optionally
-    stubble/beard and freckles.
+    grain), redder cheeks, nose and ears, lips (sometimes lipstick), darker under-eyes, eyebrows,
+    and sometimes stubble/beard and freckles.
 
-    Returns:
-        ``(albedo, info)`` where ``info`` holds the sampled amounts (for debugging and figures).
+    Args:
+        noise: ``noise(rng, name)`` gives a unit-variance per-vertex field at the scale ``name``
+            (see :meth:`~facenormals.data.head.HeadAssets.noise`).
+        regions: per-vertex region weights (:attr:`~facenormals.data.head.HeadAssets.regions`).
+        rng: the random stream.
+        brow_color: linear-RGB colour of eyebrows and beard.
     """
     tone = sample_skin_tone(rng)
-    n = len(points)
     darkness = 1.0 - float(np.mean(tone) ** 0.5)
-    variation = (
-        0.06 * fourier_noise(points, rng, 60.0)
-        + 0.04 * fourier_noise(points, rng, 15.0)
-        + 0.03 * rng.uniform(0.3, 1.0) * fourier_noise(points, rng, 4.0, terms=24)
-    )
+    variation = (0.06 * noise(rng, "blotches") + 0.04 * noise(rng, "mottle")
+                 + 0.03 * rng.uniform(0.3, 1.0) * noise(rng, "grain"))
     albedo = tone[None, :] * (1.0 + variation[:, None])
-    redness = np.array([1.0, 0.78, 0.78])
+    redness = np.array([0.0, 0.22, 0.22])
     flush = rng.uniform(0.0, 0.45) * regions["cheeks"] + rng.uniform(0.05, 0.35) * regions["nose"] + 0.3 * regions["ears"]
-    albedo *= 1.0 - flush[:, None] * (1.0 - redness)[None, :]
-    albedo *= 1.0 - rng.uniform(0.0, 0.3) * regions["under_eyes"][:, None] * np.array([1.0, 1.1, 1.0])
+    albedo *= 1.0 - flush[:, None] * redness[None, :]
+    albedo *= 1.0 - rng.uniform(0.0, 0.3) * regions["under_eyes"][:, None] * np.array([0.9, 1.0, 0.9])
     lip = tone * np.array([0.75, 0.42, 0.45]) * rng.uniform(0.7, 1.1)
     if rng.random() < 0.15:  # lipstick
-        lip = srgb_to_linear(np.clip(rng.uniform([0.4, 0.0, 0.05], [0.85, 0.2, 0.35]), 0, 1))
+        lip = srgb_to_linear(rng.uniform([0.4, 0.0, 0.05], [0.85, 0.2, 0.35]))
     w = np.clip(regions["lips"] * rng.uniform(0.6, 1.0), 0, 1)[:, None]
     albedo = albedo * (1 - w) + lip[None, :] * w
     brow_density = rng.uniform(0.3, 0.95) * (1.0 - 0.5 * darkness)
-    w = np.clip(regions["brows"] * brow_density * (0.75 + 0.25 * fourier_noise(points, rng, 2.0, terms=16)), 0, 1)[:, None]
+    w = np.clip(regions["brows"] * brow_density * (0.75 + 0.25 * noise(rng, "hairs")), 0, 1)[:, None]
     albedo = albedo * (1 - w) + brow_color[None, :] * w
-    beard = 0.0
     if rng.random() < 0.3:
         beard = rng.uniform(0.15, 0.9)
-        w = np.clip(regions["beard"] * beard * (0.8 + 0.2 * fourier_noise(points, rng, 1.5, terms=16)), 0, 1)[:, None]
+        w = np.clip(regions["beard"] * beard * (0.8 + 0.2 * noise(rng, "stubble")), 0, 1)[:, None]
         albedo = albedo * (1 - w) + brow_color[None, :] * w
-    freckles = 0.0
     if rng.random() < 0.15:
-        freckles = rng.uniform(0.1, 0.3)
-        spots = np.clip(fourier_noise(points, rng, 3.0, terms=24) - 1.2, 0, None) * regions["face"]
-        albedo *= 1.0 - freckles * np.clip(spots, 0, 1)[:, None] * np.array([0.8, 1.0, 1.2])[None, :]
-    info = {"tone": float(np.mean(tone)), "beard": beard, "freckles": freckles, "vertices": n}
-    return np.clip(albedo, 0.0, 1.0).astype(np.float32), info
+        spots = np.clip(noise(rng, "freckles") - 1.2, 0, 1) * regions["face"]
+        albedo *= 1.0 - rng.uniform(0.1, 0.3) * spots[:, None] * np.array([0.8, 1.0, 1.2])[None, :]
+    return np.clip(albedo, 0.0, 1.0).astype(np.float32)
 
 
 def sample_lighting(rng: np.random.Generator, num_lights: tuple[int, int] = (1, 3),

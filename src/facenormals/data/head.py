@@ -9,14 +9,14 @@ built-in head) simply has no openings.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse
 import torch
 
 from facenormals.data.meshes import boundary_loops, neighbour_average
-from facenormals.mesh import vertex_normals
+from facenormals.mesh import VertexNormals, vertex_normals
 from facenormals.models.morphable import MorphableModel
 
 __all__ = ["HeadAssets"]
@@ -64,6 +64,8 @@ class HeadAssets:
         smoothing: the one-ring averaging operator ``(N, N)``.
         landmarks: ``(24, 3)`` landmark positions on the mean head.
         skull_center: ``(3,)`` centre of the skull in the mean head's model frame.
+        skull_radius: ``(N,)`` distance of each mean vertex from the skull centre, smoothed over
+            the mesh (20 one-ring averages), the base of hair shells.
     """
 
     model: MorphableModel
@@ -79,6 +81,9 @@ class HeadAssets:
     smoothing: scipy.sparse.csr_matrix
     landmarks: np.ndarray
     skull_center: np.ndarray
+    skull_radius: np.ndarray
+    _noise: dict = field(default_factory=dict, repr=False)
+    _normals: VertexNormals | None = field(default=None, repr=False)
 
     @classmethod
     def from_model(cls, model: MorphableModel) -> "HeadAssets":
@@ -177,6 +182,10 @@ class HeadAssets:
         for loop in [*eyes, *(l for l in (mouth_loop,) if l is not None)]:
             occlusion[loop] = np.minimum(occlusion[loop], 0.6)
 
+        radius = np.linalg.norm(v - skull_center, axis=1)
+        for _ in range(20):
+            radius = smoothing @ radius
+
         return cls(
             model=model,
             faces=faces,
@@ -191,10 +200,15 @@ class HeadAssets:
             smoothing=smoothing,
             landmarks=landmarks,
             skull_center=skull_center,
+            skull_radius=radius,
         )
 
     def vertices(self, shape_coeffs: np.ndarray, expression_coeffs: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Identity-only and full vertices ``(N, 3)`` float32 of one head, from float32 coefficients."""
+        """Identity-only and full vertices ``(N, 3)`` float32 of one head, from float32 coefficients.
+
+        The full vertices are computed with the same two ``addmm`` as ``model(y, e)``, so they are
+        bit-identical to rebuilding the head from the stored coefficients.
+        """
         model = self.model
         with torch.no_grad():
             y = torch.from_numpy(np.asarray(shape_coeffs, np.float32))[None]
@@ -202,5 +216,39 @@ class HeadAssets:
             full = identity
             if expression_coeffs is not None and model.num_expressions:
                 e = torch.from_numpy(np.asarray(expression_coeffs, np.float32))[None]
-                full = model(y, e)
+                basis = model.expression_basis.reshape(model.num_expressions, -1)
+                full = torch.addmm(identity.reshape(1, -1), e, basis).reshape(identity.shape)
         return identity[0].numpy(), full[0].numpy()
+
+    def vertex_normals(self, vertices: np.ndarray) -> np.ndarray:
+        """Ring vertex normals ``(N, 3)`` float32 (:func:`~facenormals.mesh.vertex_normals`) of one head."""
+        if self._normals is None:
+            self._normals = VertexNormals(self.model.faces, self.model.num_vertices)
+        with torch.no_grad():
+            return self._normals(torch.from_numpy(np.ascontiguousarray(vertices, np.float32))[None])[0].numpy()
+
+    def noise(self, rng: np.random.Generator, name: str) -> np.ndarray:
+        """A smooth random per-vertex field ``(N,)`` of unit variance, attached to the surface.
+
+        It is a random combination of 24 fixed fields (sums of plane waves over the mean head,
+        built once per process with a fixed seed), so sampling costs one small matrix product.
+        ``name`` picks the scale: ``"blotches"`` (60 mm), ``"mottle"`` (15 mm), ``"grain"`` (4 mm),
+        ``"freckles"`` (3 mm), ``"hairs"`` (2 mm), ``"stubble"`` (1.5 mm), ``"hair_volume"`` (40 mm),
+        ``"strands"`` (stripes across the azimuth).
+        """
+        from facenormals.data.appearance import fourier_noise
+
+        if name not in self._noise:
+            scales = {"blotches": 60.0, "mottle": 15.0, "grain": 4.0, "freckles": 3.0, "hairs": 2.0, "stubble": 1.5,
+                      "hair_volume": 40.0, "strands": 2.5}
+            if name not in scales:
+                raise ValueError(f"name: expected one of {sorted(scales)}, got {name!r}")
+            points = self.model.mean.detach().cpu().double().numpy()
+            if name == "strands":
+                points = np.stack([self.azimuth * 90.0, self.height * 0.15, np.zeros_like(self.height)], axis=1)
+            bank_rng = np.random.default_rng(sorted(scales).index(name))
+            terms = 24 if scales[name] < 5 else 12
+            self._noise[name] = np.stack([fourier_noise(points, bank_rng, scales[name], terms) for _ in range(24)]).astype(np.float32)
+        bank = self._noise[name]
+        weights = rng.normal(size=len(bank)).astype(np.float32) / np.sqrt(len(bank))
+        return weights @ bank

@@ -6,6 +6,8 @@ Faces are counter-clockwise seen from outside (``docs/conventions.md``), so that
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.sparse
 
@@ -83,29 +85,43 @@ def ring_strip(first: np.ndarray, second: np.ndarray, closed: bool = True) -> np
     return np.concatenate([upper, lower]).astype(np.int64)
 
 
+@functools.lru_cache(maxsize=16)
+def _sphere_topology(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """Faces and ring index of a UV sphere with ``rings`` latitude rings (poles included)."""
+    inner = rings - 2
+    index = 1 + np.arange(inner * segments).reshape(inner, segments)
+    last = inner * segments + 1
+    s = np.arange(segments)
+    faces = [np.stack([np.zeros(segments, np.int64), index[0, s], index[0, (s + 1) % segments]], 1)]
+    faces += [ring_strip(index[r], index[r + 1]) for r in range(inner - 1)]
+    faces.append(np.stack([np.full(segments, last), index[-1, (s + 1) % segments], index[-1, s]], 1))
+    faces = np.concatenate(faces).astype(np.int64)
+    ring = np.concatenate([[0], np.repeat(np.arange(1, inner + 1), segments), [inner + 1]])
+    vertices = _sphere_vertices(np.linspace(0.0, np.pi, rings), segments)
+    flip = np.sum(face_normals(vertices, faces) * vertices[faces].mean(1), axis=1) < 0  # orient outwards
+    faces[flip] = faces[flip][:, ::-1]
+    faces.setflags(write=False)
+    ring.setflags(write=False)
+    return faces, ring
+
+
+def _sphere_vertices(polar_angles: np.ndarray, segments: int) -> np.ndarray:
+    inner = np.asarray(polar_angles, dtype=np.float64)[1:-1]
+    phi = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    st, ct = np.sin(inner)[:, None], np.cos(inner)[:, None]
+    rings = np.stack([st * np.cos(phi), st * np.sin(phi), ct * np.ones_like(phi)], -1)
+    return np.concatenate([[[0.0, 0.0, 1.0]], rings.reshape(-1, 3), [[0.0, 0.0, -1.0]]])
+
+
 def sphere_mesh(polar_angles: np.ndarray, segments: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A unit sphere around the +z axis with latitude rings at ``polar_angles`` (radians from +z).
+    """A unit sphere around the +z axis with latitude rings at ``polar_angles`` (increasing, radians
+    from +z, starting at 0 and ending at π).
 
     Returns ``(vertices, faces, ring)``: one vertex per pole, ``segments`` per inner ring, and
     the ring index of every vertex (0 = the +z pole).
     """
-    theta = np.asarray(polar_angles, dtype=np.float64)
-    inner = theta[1:-1]
-    phi = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
-    st, ct = np.sin(inner)[:, None], np.cos(inner)[:, None]
-    rings = np.stack([st * np.cos(phi), st * np.sin(phi), ct * np.ones_like(phi)], -1)
-    vertices = np.concatenate([[[0.0, 0.0, 1.0]], rings.reshape(-1, 3), [[0.0, 0.0, -1.0]]])
-    ring = np.concatenate([[0], np.repeat(np.arange(1, len(inner) + 1), segments), [len(inner) + 1]])
-    index = 1 + np.arange(len(inner) * segments).reshape(len(inner), segments)
-    last = len(vertices) - 1
-    s = np.arange(segments)
-    faces = [np.stack([np.zeros(segments, np.int64), index[0, s], index[0, (s + 1) % segments]], 1)]
-    faces += [ring_strip(index[r], index[r + 1]) for r in range(len(inner) - 1)]
-    faces.append(np.stack([np.full(segments, last), index[-1, (s + 1) % segments], index[-1, s]], 1))
-    faces = np.concatenate(faces).astype(np.int64)
-    flip = np.sum(face_normals(vertices, faces) * vertices[faces].mean(1), axis=1) < 0  # orient outwards
-    faces[flip] = faces[flip][:, ::-1]
-    return vertices, faces, ring
+    faces, ring = _sphere_topology(len(polar_angles), int(segments))
+    return _sphere_vertices(polar_angles, segments), faces, ring
 
 
 def box_mesh() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -29,6 +29,8 @@ import numpy as np
 __all__ = ["Lighting", "MeshPart", "RenderedTiles", "TileRenderer", "TileScene"]
 
 MAX_LIGHTS = 3
+#: Largest side of the supersampled framebuffer (24 bytes a sample: 400 MB at 4096²).
+MAX_FRAMEBUFFER = 4096
 
 _VERTEX_SHADER = """
 #version 330 core
@@ -195,7 +197,8 @@ class TileRenderer:
 
     Args:
         image_size: ``(H, W)`` of one sample.
-        grid: tiles per side; a batch holds at most ``grid²`` scenes.
+        grid: tiles per side; a batch holds at most ``grid²`` scenes. Lowered when the framebuffer
+            would exceed :data:`MAX_FRAMEBUFFER` or the OpenGL implementation's limit.
         supersample: odd colour supersampling factor ``s``.
         near: near clipping depth in mm.
         far: far clipping depth in mm.
@@ -213,7 +216,7 @@ class TileRenderer:
         near: float = 5.0,
         far: float = 50000.0,
     ) -> None:
-        from facenormals.data.platform import create_gl_context
+        from facenormals.data.gl_platform import create_gl_context
 
         height, width = (int(s) for s in image_size)
         if height < 1 or width < 1:
@@ -262,7 +265,12 @@ class TileRenderer:
                  "u_num_lights", "u_light_direction", "u_light_color", "u_material", "u_noise"]
         self._uniform = {name: gl.glGetUniformLocation(program, name) for name in names}
 
-        h, w, s, g = self.image_size[0], self.image_size[1], self.supersample, self.grid
+        h, w, s = self.image_size[0], self.image_size[1], self.supersample
+        limit = min(int(gl.glGetIntegerv(gl.GL_MAX_RENDERBUFFER_SIZE)), int(np.min(gl.glGetIntegerv(gl.GL_MAX_VIEWPORT_DIMS))),
+                    MAX_FRAMEBUFFER)
+        if max(h, w) * s > limit:
+            raise ValueError(f"image_size x supersample = {max(h, w) * s} exceeds the renderer's limit of {limit} pixels")
+        self.grid = g = min(self.grid, limit // (max(h, w) * s))  # fewer tiles when the framebuffer would be too large
         self._hi_size = (g * h * s, g * w * s)
         self._lo_size = (g * h, g * w)
         self._fbo_hi = gl.glGenFramebuffers(1)
@@ -326,9 +334,10 @@ class TileRenderer:
         vertex_data, index_data, draws = self._pack(scenes)
         gl.glBindVertexArray(self._vao)
         gl.glBindBuffer(gl.GL_ARRAY_BUFFER, self._vbo)
-        gl.glBufferData(gl.GL_ARRAY_BUFFER, vertex_data.nbytes, vertex_data, gl.GL_STREAM_DRAW)
+        gl.glBufferData(gl.GL_ARRAY_BUFFER, vertex_data.nbytes, ctypes.c_void_p(vertex_data.ctypes.data), gl.GL_STREAM_DRAW)
         gl.glBindBuffer(gl.GL_ELEMENT_ARRAY_BUFFER, self._ebo)
-        gl.glBufferData(gl.GL_ELEMENT_ARRAY_BUFFER, index_data.nbytes, index_data, gl.GL_STREAM_DRAW)
+        gl.glBufferData(gl.GL_ELEMENT_ARRAY_BUFFER, index_data.nbytes, ctypes.c_void_p(index_data.ctypes.data),
+                        gl.GL_STREAM_DRAW)
 
         gl.glBindFramebuffer(gl.GL_FRAMEBUFFER, self._fbo_hi)
         gl.glDrawBuffers(2, [gl.GL_COLOR_ATTACHMENT0, gl.GL_COLOR_ATTACHMENT1])
@@ -386,7 +395,7 @@ class TileRenderer:
                 block[:, 3:6] = part.normals
                 block[:, 6:9] = part.colors
                 block[:, 9] = 1.0 if part.occlusion is None else part.occlusion
-                faces = np.ascontiguousarray(part.faces, dtype=np.uint32).ravel()
+                faces = part.faces.ravel() if part.faces.dtype == np.uint32 else part.faces.astype(np.uint32).ravel()
                 vertex_blocks.append(block)
                 index_blocks.append(faces)
                 scene_draws.append((index_count, faces.size, vertex_count))

@@ -140,12 +140,26 @@ class _Context:
             self._platform = OSMesaPlatform(1, 1)
         self._platform.init_context()
         self._platform.make_current()
+        # pyrender's Platform.__del__ calls delete_context, which for EGL also terminates the display
+        # that all contexts of the process share: route it to delete(), which destroys this one only.
+        self._platform.delete_context = self.delete
 
     def make_current(self) -> None:
         self._platform.make_current()
 
     def delete(self) -> None:
-        self._platform.delete_context()
+        """Destroy this context only: pyrender's ``delete_context`` would also terminate the EGL
+        display, which every context of the process shares."""
+        if self.platform_name == "egl":
+            from OpenGL import EGL
+
+            platform = self._platform
+            if platform._egl_context is not None:
+                EGL.eglMakeCurrent(platform._egl_display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+                EGL.eglDestroyContext(platform._egl_display, platform._egl_context)
+                platform._egl_context = None
+        elif getattr(self._platform, "_context", None) is not None:
+            type(self._platform).delete_context(self._platform)
 
 
 def create_gl_context() -> _Context:
@@ -156,6 +170,12 @@ def create_gl_context() -> _Context:
             says what to install.
     """
     platform = select_gl_platform()
+    try:
+        import pyrender  # noqa: F401
+    except ImportError as error:
+        raise HeadlessGLError(
+            f"rendering needs pyrender ({error}); install it with `pip install 'facenormals[render]'`"
+        ) from error
     try:
         return _Context(platform)
     except Exception as error:  # pyrender raises assertions, ImportError or ctypes errors here

@@ -1,0 +1,127 @@
+"""A :class:`torch.utils.data.Dataset` over the shards written by :func:`~facenormals.data.write_dataset`."""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from facenormals.data.landmark_maps import DEFAULT_SIGMA, landmark_maps
+from facenormals.data.shards import SHARD_ARRAYS, read_manifest, read_member, shard_name, shard_range
+
+__all__ = ["SyntheticHeadDataset"]
+
+
+class SyntheticHeadDataset(Dataset):
+    r"""Training samples from a synthetic dataset folder; safe in ``DataLoader`` worker processes.
+
+    Shard files are opened lazily, once per process (the open handles are dropped when the dataset
+    is pickled into a worker), and a sample decompresses only its own image, normals and labels.
+    The landmark maps Z are rasterised here from the stored points
+    (:func:`~facenormals.data.landmark_maps`).
+
+    Args:
+        root: the dataset folder (with ``manifest.json``).
+        sigma: standard deviation of the landmark Gaussians in pixels.
+        augment: optional callable applied to the ``(3, H, W)`` image, e.g.
+            :class:`~facenormals.data.PhotoAugmentation`.
+        allow_missing: serve only the complete shards present instead of raising when some are
+            missing (e.g. while other ranks are still writing).
+
+    Raises:
+        FileNotFoundError: if the manifest or (unless ``allow_missing``) a shard is missing.
+        ValueError: on a bad manifest or ``sigma``.
+
+    Each item is a dict of tensors (``L`` landmarks, ``K`` shape and ``E`` expression coefficients):
+
+    - ``image`` ``(3, H, W)`` float32 in ``[0, 1]``;
+    - ``normals`` ``(3, H, W)`` float32 camera-frame unit normals, 0 off the head;
+    - ``foreground`` ``(1, H, W)`` bool, the head surface (where ``normals`` is non-zero);
+    - ``landmark_maps`` ``(L, H, W)`` float32;
+    - ``landmarks`` ``(L, 2)`` float32 pixels and ``landmark_visible`` ``(L,)`` bool;
+    - ``segmentation`` ``(H, W)`` uint8 labels;
+    - ``shape_coeffs`` ``(K,)``, ``expression_coeffs`` ``(E,)``, ``angles`` ``(3,)``, ``rotation``
+      ``(3, 3)``, ``translation`` ``(3,)``, ``intrinsics`` ``(3,)`` float32, and ``index`` (int64).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        sigma: float = DEFAULT_SIGMA,
+        augment: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        allow_missing: bool = False,
+    ) -> None:
+        self.root = Path(root)
+        self.manifest = read_manifest(self.root)
+        if not sigma > 0:
+            raise ValueError(f"sigma: expected a positive value, got {sigma}")
+        self.sigma = float(sigma)
+        self.augment = augment
+        self.count = int(self.manifest["count"])
+        self.shard_size = int(self.manifest["shard_size"])
+        self.image_size = int(self.manifest["image_size"])
+        self.normal_scale = float(self.manifest["normal_scale"])
+        num_shards = -(-self.count // self.shard_size)
+        present = [k for k in range(num_shards) if (self.root / shard_name(k)).is_file()]
+        missing = sorted(set(range(num_shards)) - set(present))
+        if missing and not allow_missing:
+            names = ", ".join(shard_name(k) for k in missing[:5]) + (" ..." if len(missing) > 5 else "")
+            raise FileNotFoundError(f"{self.root}: {len(missing)} of {num_shards} shards are missing ({names})")
+        self._items = [(k, i) for k in present for i in range(len(shard_range(k, self.count, self.shard_size)))]
+        if not self._items:
+            raise FileNotFoundError(f"{self.root}: no shard files")
+        self._pid: int | None = None
+        self._archives: dict[int, zipfile.ZipFile] = {}
+        self._tables: dict[int, dict[str, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __repr__(self) -> str:
+        return (f"SyntheticHeadDataset(root={str(self.root)!r}, samples={len(self)}, "
+                f"model={self.manifest['model']['name']!r}, sigma={self.sigma})")
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_pid"], state["_archives"], state["_tables"] = None, {}, {}
+        return state
+
+    def _shard(self, shard: int) -> tuple[zipfile.ZipFile, dict[str, np.ndarray]]:
+        if self._pid != os.getpid():  # a fresh process (DataLoader worker): never reuse inherited handles
+            self._pid, self._archives, self._tables = os.getpid(), {}, {}
+        if shard not in self._archives:
+            archive = zipfile.ZipFile(self.root / shard_name(shard))
+            self._archives[shard] = archive
+            self._tables[shard] = {name: read_member(archive, name) for name in SHARD_ARRAYS}
+        return self._archives[shard], self._tables[shard]
+
+    def close(self) -> None:
+        """Close the open shard files of this process."""
+        for archive in self._archives.values():
+            archive.close()
+        self._archives, self._tables = {}, {}
+
+    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
+        if not -len(self) <= item < len(self):
+            raise IndexError(f"index {item} is out of range for {len(self)} samples")
+        shard, i = self._items[item]
+        archive, table = self._shard(shard)
+        image = torch.from_numpy(read_member(archive, f"image/{i:04d}")).permute(2, 0, 1).float() / 255.0
+        normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
+        segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
+        sample = {name: torch.from_numpy(np.array(table[name][i])) for name in SHARD_ARRAYS}
+        size = (self.image_size, self.image_size)
+        sample["landmark_maps"] = landmark_maps(sample["landmarks"][None], sample["landmark_visible"][None], size,
+                                                self.sigma)[0]
+        if self.augment is not None:
+            image = self.augment(image)
+        sample["image"] = image
+        sample["normals"] = normals
+        sample["foreground"] = (normals.square().sum(0, keepdim=True) > 0.25)
+        sample["segmentation"] = segmentation
+        return sample

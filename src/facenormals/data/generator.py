@@ -1,0 +1,494 @@
+r"""Synthetic training samples: rendered heads with exact normal maps, landmarks and ground truth.
+
+A sample is a deterministic function of ``(seed, index)``: every random choice draws from
+``numpy.random.SeedSequence(seed, spawn_key=(index,))`` (one child stream per aspect: shape, pose,
+camera, skin, hair, lights, background, extras), and the sample is always drawn in the tile
+``index mod grid²`` of the renderer, so its bytes do not depend on the batch it was generated
+in, on the number of workers or on the machine's rank.
+
+See ``docs/synthetic_data.md`` for the distributions and the design decisions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+import torch
+
+from facenormals.data.appearance import sample_hair_color, sample_iris_color, sample_lighting, skin_albedo, srgb_to_linear
+from facenormals.data.backgrounds import PhotoLibrary, random_background
+from facenormals.data.head import HeadAssets
+from facenormals.data.render import MeshPart, RenderedTiles, TileRenderer, TileScene
+from facenormals.data.scene import (
+    HEAD_LABELS,
+    clothing_part,
+    eye_parts,
+    hair_parts,
+    mouth_part,
+    occluder_parts,
+)
+from facenormals.geometry import euler_to_rotation_matrix, project_points
+from facenormals.models.morphable import MorphableModel
+
+__all__ = ["SynthBatch", "SynthConfig", "SyntheticHeadGenerator"]
+
+_STREAMS = ("shape", "pose", "camera", "skin", "hair", "light", "background", "extras")
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    r"""The distributions of the synthetic data (defaults: the issue's ranges).
+
+    Attributes:
+        image_size: side of the square images in pixels.
+        identity_scale: identity coefficients are :math:`y_k \sim \mathcal N(0, (s\,\sigma_k)^2)`;
+            values above 1 give a wider range of faces.
+        expression_probability: probability of a non-neutral expression.
+        max_expressions: at most this many blendshapes are active (before mirroring _L/_R pairs).
+        yaw, pitch, roll: uniform ranges ``±`` these angles, degrees.
+        fill: range of the head's size (larger side of the projected bounding box of the head
+            without the neck) as a fraction of the image side.
+        focal: range of the focal length in pixels for a 128-pixel image (log-uniform; scaled
+            with ``image_size``).
+        principal_jitter: principal point offset from the image centre, uniform ``±`` pixels at 128.
+        num_lights: range of the number of directional lights.
+        temperature: range of the colour temperatures in kelvin.
+        hair_probability: probability of procedural hair.
+        cap_probability: probability of a cap (otherwise bald when no hair).
+        occluder_probability: probability of 1–2 occluding solids in front of the face.
+        eyes, mouth, clothing: draw eyeballs, a mouth interior, collar and shoulders.
+        photo_probability: probability of a photo background when photos are available.
+        background_folders: folders of background photos (``.jpg``/``.png``).
+        use_skimage: also crop ``skimage.data`` images when scikit-image is installed.
+        supersample: odd colour supersampling factor (anti-aliasing).
+    """
+
+    image_size: int = 128
+    identity_scale: float = 1.0
+    expression_probability: float = 0.8
+    max_expressions: int = 4
+    yaw: float = 90.0
+    pitch: float = 35.0
+    roll: float = 25.0
+    fill: tuple[float, float] = (0.4, 0.9)
+    focal: tuple[float, float] = (120.0, 800.0)
+    principal_jitter: float = 6.0
+    num_lights: tuple[int, int] = (1, 3)
+    temperature: tuple[float, float] = (2500.0, 9000.0)
+    hair_probability: float = 0.65
+    cap_probability: float = 0.15
+    occluder_probability: float = 0.25
+    eyes: bool = True
+    mouth: bool = True
+    clothing: bool = True
+    photo_probability: float = 0.4
+    background_folders: tuple[str, ...] = ()
+    use_skimage: bool = True
+    supersample: int = 3
+
+    def __post_init__(self) -> None:
+        def probability(name: str) -> None:
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name}: expected a probability in [0, 1], got {value}")
+
+        if int(self.image_size) < 16:
+            raise ValueError(f"image_size: expected >= 16, got {self.image_size}")
+        if not self.identity_scale >= 0:
+            raise ValueError(f"identity_scale: expected >= 0, got {self.identity_scale}")
+        for name in ("expression_probability", "hair_probability", "cap_probability", "occluder_probability",
+                     "photo_probability"):
+            probability(name)
+        if self.hair_probability + self.cap_probability > 1.0:
+            raise ValueError("hair_probability + cap_probability: expected at most 1, got "
+                             f"{self.hair_probability + self.cap_probability}")
+        lo, hi = self.fill
+        if not 0.0 < lo <= hi <= 1.5:
+            raise ValueError(f"fill: expected 0 < low <= high <= 1.5, got {self.fill}")
+        if not 0.0 < self.focal[0] <= self.focal[1]:
+            raise ValueError(f"focal: expected 0 < low <= high, got {self.focal}")
+        if not 0 <= self.num_lights[0] <= self.num_lights[1] <= 3:
+            raise ValueError(f"num_lights: expected 0 <= low <= high <= 3, got {self.num_lights}")
+        if self.supersample < 1 or self.supersample % 2 == 0:
+            raise ValueError(f"supersample: expected an odd factor >= 1, got {self.supersample}")
+        for name in ("yaw", "pitch", "roll"):
+            if not 0.0 <= getattr(self, name) <= 180.0:
+                raise ValueError(f"{name}: expected a range in [0, 180] degrees, got {getattr(self, name)}")
+
+    @classmethod
+    def head_only(cls, **changes) -> "SynthConfig":
+        """A configuration that renders the bare head mesh: no hair, caps, occluders, eyes, mouth or clothing."""
+        base = dict(hair_probability=0.0, cap_probability=0.0, occluder_probability=0.0, eyes=False, mouth=False,
+                    clothing=False)
+        base.update(changes)
+        return cls(**base)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable form (tuples become lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "SynthConfig":
+        names = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(names))
+        if unknown:
+            raise ValueError(f"config: unknown fields {unknown}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+@dataclass
+class SynthBatch:
+    """A batch of samples as NumPy arrays (``B`` samples, ``L = 24`` landmarks, ``S = H = W``).
+
+    Attributes:
+        index: ``(B,)`` int64 sample indices.
+        image: ``(B, S, S, 3)`` uint8 RGB images.
+        normals: ``(B, 3, S, S)`` float32 camera-frame unit normals of the head surface, 0 elsewhere.
+        segmentation: ``(B, S, S)`` uint8 labels (see :data:`~facenormals.data.scene.LABELS`).
+        depth: ``(B, S, S)`` float32 camera-frame depth of the nearest surface (any label), ``inf``
+            on background. Not stored in shards.
+        landmarks: ``(B, L, 2)`` float32 landmark pixels ``(u, v)``, :func:`~facenormals.geometry.project_points`
+            of the ground truth.
+        landmark_visible: ``(B, L)`` bool: inside the image, not hidden by the head (z-buffer) nor
+            by hair, headwear, clothing or occluders.
+        shape_coeffs: ``(B, K)`` float32 identity coefficients.
+        expression_coeffs: ``(B, E)`` float32 expression weights (``E = 0`` without blendshapes).
+        angles: ``(B, 3)`` float32 ``(roll, pitch, yaw)`` in radians.
+        rotation: ``(B, 3, 3)`` float32, ``euler_to_rotation_matrix(angles)``.
+        translation: ``(B, 3)`` float32 model-frame translation ``t`` in mm.
+        intrinsics: ``(B, 3)`` float32 ``(f, u0, v0)`` in pixels.
+    """
+
+    index: np.ndarray
+    image: np.ndarray
+    normals: np.ndarray
+    segmentation: np.ndarray
+    depth: np.ndarray
+    landmarks: np.ndarray
+    landmark_visible: np.ndarray
+    shape_coeffs: np.ndarray
+    expression_coeffs: np.ndarray
+    angles: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    intrinsics: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``(B, S, S)`` bool foreground: the head surface (where N is non-zero)."""
+        return np.isin(self.segmentation, HEAD_LABELS)
+
+    @staticmethod
+    def concatenate(batches: Sequence["SynthBatch"]) -> "SynthBatch":
+        fields_ = [f.name for f in dataclasses.fields(SynthBatch)]
+        return SynthBatch(**{name: np.concatenate([getattr(b, name) for b in batches]) for name in fields_})
+
+
+@dataclass
+class _Plan:
+    """Everything sampled for one sample before rendering."""
+
+    index: int
+    scene: TileScene
+    background: np.ndarray
+    record: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class SyntheticHeadGenerator:
+    """Render synthetic training samples of a morphable model.
+
+    Args:
+        model: a :class:`~facenormals.models.MorphableModel` or a spec for
+            :func:`~facenormals.models.load_model` (``"auto"``, ``"ict"``, ``"builtin"``, a path).
+        config: the :class:`SynthConfig`.
+        grid: renderer tiles per side (``grid²`` samples per render call). A sample is always drawn
+            in tile ``index mod grid²``; its bytes are reproducible for the same ``grid`` (the
+            default 8 is what :func:`~facenormals.data.write_dataset` uses).
+
+    The OpenGL context is created on first use, so constructing a generator is cheap and the
+    object can be built before a process forks; each process must use its own generator.
+
+    Example:
+        >>> gen = SyntheticHeadGenerator("builtin")  # doctest: +SKIP
+        >>> batch = gen.generate(seed=0, indices=range(4))  # doctest: +SKIP
+        >>> batch.image.shape, batch.normals.shape  # doctest: +SKIP
+        ((4, 128, 128, 3), (4, 3, 128, 128))
+    """
+
+    def __init__(self, model: MorphableModel | str = "auto", config: SynthConfig | None = None, grid: int = 8) -> None:
+        from facenormals.models import load_model
+
+        if isinstance(model, MorphableModel):
+            self.model = model.float().cpu()
+        else:
+            self.model = load_model(model)
+        self.config = config if config is not None else SynthConfig()
+        if not isinstance(self.config, SynthConfig):
+            raise ValueError(f"config: expected a SynthConfig, got {type(self.config).__name__}")
+        if int(grid) < 1:
+            raise ValueError(f"grid: expected >= 1, got {grid}")
+        self.grid = int(grid)
+        self.assets = HeadAssets.from_model(self.model)
+        self._faces = np.ascontiguousarray(self.assets.faces, dtype=np.uint32)
+        self.photos = PhotoLibrary(self.config.background_folders, self.config.use_skimage)
+        self._renderer: TileRenderer | None = None
+        names = self.model.expression_names
+        mirror = {n: n[:-2] + {"_L": "_R", "_R": "_L"}[n[-2:]] for n in names if n[-2:] in ("_L", "_R")}
+        self._pairs = {i: names.index(mirror[n]) for i, n in enumerate(names) if mirror.get(n) in names}
+        self._jaw = names.index("jawOpen") if "jawOpen" in names else None
+        self._mouth_close = names.index("mouthClose") if "mouthClose" in names else None
+
+    def __repr__(self) -> str:
+        return f"SyntheticHeadGenerator(model={self.model.name!r}, image_size={self.config.image_size}, grid={self.grid})"
+
+    @property
+    def renderer(self) -> TileRenderer:
+        """The tiled renderer (created on first use)."""
+        if self._renderer is None:
+            size = self.config.image_size
+            self._renderer = TileRenderer((size, size), grid=self.grid, supersample=self.config.supersample)
+            self.grid = self._renderer.grid
+        return self._renderer
+
+    def close(self) -> None:
+        """Release the OpenGL context."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __enter__(self) -> "SyntheticHeadGenerator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ public
+
+    def generate(self, seed: int, indices: Iterable[int]) -> SynthBatch:
+        """Generate the samples ``indices`` of the dataset ``seed``.
+
+        Args:
+            seed: dataset seed, an integer ``>= 0``.
+            indices: sample indices, integers ``>= 0`` (any order, repeats allowed).
+
+        Returns:
+            The :class:`SynthBatch`, in the order of ``indices``.
+
+        Raises:
+            ValueError: on a negative or non-integer seed or index.
+        """
+        seed = _check_int(seed, "seed")
+        indices = [_check_int(i, "indices") for i in indices]
+        capacity = self.renderer.capacity
+        groups: list[list[int]] = []
+        used: set[int] = set()
+        for position, index in enumerate(indices):
+            tile = index % capacity
+            if not groups or tile in used or len(groups[-1]) == capacity:
+                groups.append([])
+                used = set()
+            groups[-1].append(position)
+            used.add(tile)
+        results: list[SynthBatch] = []
+        for group in groups:
+            plans = [self._plan(seed, indices[p]) for p in group]
+            rendered = self.renderer.render([p.scene for p in plans], [p.index % capacity for p in plans])
+            results.append(self._finish(plans, rendered))
+        if not results:
+            return self._empty()
+        return SynthBatch.concatenate(results)
+
+    def sample(self, seed: int, index: int) -> SynthBatch:
+        """One sample, as a batch of one."""
+        return self.generate(seed, [index])
+
+    # ------------------------------------------------------------------ sampling
+
+    def _streams(self, seed: int, index: int) -> dict[str, np.random.Generator]:
+        root = np.random.SeedSequence(entropy=seed, spawn_key=(index,))
+        return {name: np.random.Generator(np.random.PCG64(child)) for name, child in zip(_STREAMS, root.spawn(len(_STREAMS)))}
+
+    def _expressions(self, rng: np.random.Generator) -> np.ndarray:
+        count = self.model.num_expressions
+        weights = np.zeros(count, dtype=np.float64)
+        if count == 0 or rng.random() >= self.config.expression_probability:
+            return weights.astype(np.float32)
+        k = int(rng.integers(1, max(1, self.config.max_expressions) + 1))
+        chosen = rng.choice(count, size=min(k, count), replace=False)
+        weights[chosen] = rng.uniform(0.15, 1.0, size=len(chosen)) ** 0.8
+        for i in chosen:
+            if i in self._pairs and rng.random() < 0.6:
+                weights[self._pairs[i]] = np.clip(weights[i] * rng.uniform(0.8, 1.2), 0.0, 1.0)
+        if self._jaw is not None and rng.random() < 0.25:
+            weights[self._jaw] = max(weights[self._jaw], rng.uniform(0.1, 0.8))
+        if self._mouth_close is not None and self._jaw is not None:
+            weights[self._mouth_close] = min(weights[self._mouth_close], weights[self._jaw])
+        return np.clip(weights, 0.0, 1.0).astype(np.float32)
+
+    def _frame(self, rng: np.random.Generator, vertices: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Intrinsics and translation so that the head fills the sampled fraction of the image."""
+        cfg = self.config
+        size = cfg.image_size
+        scale = size / 128.0
+        f = math.exp(rng.uniform(math.log(cfg.focal[0]), math.log(cfg.focal[1]))) * scale
+        center_px = (size - 1) / 2.0
+        u0 = center_px + rng.uniform(-1.0, 1.0) * cfg.principal_jitter * scale
+        v0 = center_px + rng.uniform(-1.0, 1.0) * cfg.principal_jitter * scale
+        fill = rng.uniform(*cfg.fill)
+        target = fill * size
+        head = vertices[self.assets.framing][::4].astype(np.float64)
+        middle = 0.5 * (head.min(0) + head.max(0))
+        posed = (head - middle) @ rotation.T  # camera-frame offsets from the head's middle
+        extent = float(np.max(posed[:, :2].max(0) - posed[:, :2].min(0)))
+        z = f * extent / target
+        half = min(target / 2.0, size / 2.0)
+        want = np.array([rng.uniform(half - 0.5, size - 0.5 - half), rng.uniform(half - 0.5, size - 0.5 - half)])
+        xy = (want - [u0, v0]) * z / f
+        for _ in range(6):
+            points = posed + np.array([xy[0], xy[1], z])
+            points[:, 2] = np.maximum(points[:, 2], 1.0)
+            uv = f * points[:, :2] / points[:, 2:3] + [u0, v0]
+            lo, hi = uv.min(0), uv.max(0)
+            current = float(np.max(hi - lo))
+            z *= current / target
+            xy += (want - 0.5 * (lo + hi)) * z / f
+        translation = rotation.T @ np.array([xy[0], xy[1], z]) - middle
+        return np.array([f, u0, v0], dtype=np.float32), translation.astype(np.float32)
+
+    def _plan(self, seed: int, index: int) -> _Plan:
+        cfg = self.config
+        rng = self._streams(seed, index)
+        model = self.model
+        shape = (rng["shape"].normal(size=model.num_shape) * cfg.identity_scale
+                 * model.shape_std.numpy().astype(np.float64)).astype(np.float32)
+        expression = self._expressions(rng["shape"])
+        identity, vertices = self.assets.vertices(shape, expression if model.num_expressions else None)
+        angles = np.radians(np.array([
+            rng["pose"].uniform(-cfg.roll, cfg.roll), rng["pose"].uniform(-cfg.pitch, cfg.pitch),
+            rng["pose"].uniform(-cfg.yaw, cfg.yaw),
+        ])).astype(np.float32)  # fmt: skip
+        rotation = euler_to_rotation_matrix(torch.from_numpy(angles)[None])[0].numpy()
+        intrinsics, translation = self._frame(rng["camera"], vertices, rotation.astype(np.float64))
+        R, t = rotation.astype(np.float64), translation.astype(np.float64)
+
+        # appearance
+        hair_rng = rng["hair"]
+        hair_color, brow_color = sample_hair_color(hair_rng)
+        albedo = skin_albedo(self.assets.noise, self.assets.regions, rng["skin"], brow_color)
+        normals = self.assets.vertex_normals(vertices)
+        skin = rng["skin"]
+        head = MeshPart(
+            vertices=vertices, normals=normals, colors=albedo, faces=self._faces, label=1,
+            rotation=R, translation=t, occlusion=self.assets.occlusion,
+            specular=skin.uniform(0.05, 0.35), shininess=skin.uniform(8.0, 35.0), wrap=skin.uniform(0.1, 0.4),
+            noise=(skin.uniform(0.02, 0.08), skin.uniform(0.3, 0.8), 1.0, skin.uniform(0, 100)),
+        )  # fmt: skip
+        parts = [head]
+        extras = rng["extras"]
+        if cfg.eyes:
+            parts += eye_parts(self.assets, identity, vertices, extras, sample_iris_color(extras), R, t)
+        if cfg.mouth:
+            lip = albedo[self.assets.mouth_loop].mean(0) if self.assets.mouth_loop is not None else albedo.mean(0)
+            parts += mouth_part(self.assets, vertices, extras, lip, R, t)
+        if cfg.clothing:
+            parts += clothing_part(self.assets, vertices, extras, R, t)
+        style = hair_rng.random()
+        if style < cfg.hair_probability:
+            parts += hair_parts(self.assets, vertices, normals, hair_rng, hair_color, "hair", R, t)
+        elif style < cfg.hair_probability + cfg.cap_probability:
+            cap = srgb_to_linear(hair_rng.uniform(0.05, 0.9, size=3))
+            parts += hair_parts(self.assets, vertices, normals, hair_rng, cap, "cap", R, t)
+        if extras.random() < cfg.occluder_probability:
+            lm = vertices[model.landmark_indices.numpy()].astype(np.float64)
+            camera_lm = (lm + t) @ R.T
+            front = camera_lm[camera_lm[:, 2] > 0]
+            head_size = float(np.ptp(vertices[self.assets.framing], axis=0).max())
+            if len(front):
+                parts += occluder_parts(extras, front, head_size, albedo.mean(0), int(extras.integers(1, 3)))
+        lighting = sample_lighting(rng["light"], cfg.num_lights, cfg.temperature)
+        background = random_background(rng["background"], (cfg.image_size, cfg.image_size), self.photos,
+                                       cfg.photo_probability)
+        with torch.no_grad():  # one sample at a time: the values never depend on the batch
+            pixels, depth = project_points(
+                torch.from_numpy(vertices[model.landmark_indices.numpy()])[None], torch.from_numpy(rotation)[None],
+                torch.from_numpy(translation)[None], torch.from_numpy(intrinsics)[None])
+        record = {"shape_coeffs": shape, "expression_coeffs": expression, "angles": angles, "rotation": rotation,
+                  "translation": translation, "intrinsics": intrinsics, "landmarks": pixels[0].numpy(),
+                  "landmark_depth": depth[0].numpy()}
+        return _Plan(index=index, scene=TileScene(parts, intrinsics, lighting), background=background, record=record)
+
+    # ------------------------------------------------------------------ after rendering
+
+    def _finish(self, plans: list[_Plan], rendered: RenderedTiles) -> SynthBatch:
+        model = self.model
+        size = self.config.image_size
+        coverage = rendered.coverage.astype(np.float32)[..., None] / 255.0
+        backgrounds = np.stack([p.background for p in plans]).astype(np.float32)
+        images = np.clip(np.rint(rendered.color.astype(np.float32) + backgrounds * (1.0 - coverage)), 0, 255).astype(np.uint8)
+        head = np.isin(rendered.labels, HEAD_LABELS)
+        normals = np.where(head[..., None], rendered.normals, np.float32(0.0)).transpose(0, 3, 1, 2)
+        record = {k: np.stack([p.record[k] for p in plans]) for k in plans[0].record}
+        pixels, depth = record.pop("landmarks"), record.pop("landmark_depth")
+        visible = self._visibility(pixels, depth, record["intrinsics"], rendered.depth, rendered.labels)
+        return SynthBatch(
+            index=np.array([p.index for p in plans], dtype=np.int64),
+            image=images,
+            normals=np.ascontiguousarray(normals, dtype=np.float32),
+            segmentation=rendered.labels,
+            depth=rendered.depth,
+            landmarks=pixels,
+            landmark_visible=visible,
+            shape_coeffs=record["shape_coeffs"],
+            expression_coeffs=record["expression_coeffs"].reshape(len(plans), model.num_expressions),
+            angles=record["angles"],
+            rotation=record["rotation"],
+            translation=record["translation"],
+            intrinsics=record["intrinsics"],
+        )
+
+    def _visibility(self, pixels: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, zbuffer: np.ndarray,
+                    labels: np.ndarray) -> np.ndarray:
+        """Landmarks inside the image whose nearest pixel shows the head surface at their depth.
+
+        The depth slack is the larger of 3 mm and the lateral size of two pixels at the landmark's
+        depth, which absorbs the surface slope between the landmark and the pixel centre.
+        """
+        size = self.config.image_size
+        finite = np.isfinite(pixels).all(-1)
+        u = np.rint(np.where(finite, pixels[..., 0], -1.0))
+        v = np.rint(np.where(finite, pixels[..., 1], -1.0))
+        inside = finite & (u >= 0) & (u <= size - 1) & (v >= 0) & (v <= size - 1) & (depth > 0)
+        ui = np.clip(u, 0, size - 1).astype(np.int64)
+        vi = np.clip(v, 0, size - 1).astype(np.int64)
+        b = np.arange(len(pixels))[:, None]
+        surface = zbuffer[b, vi, ui]
+        on_head = np.isin(labels[b, vi, ui], HEAD_LABELS)
+        slack = np.maximum(3.0, 2.0 * depth / intrinsics[:, None, 0])
+        return inside & on_head & (depth <= surface + slack)
+
+    def _empty(self) -> SynthBatch:
+        s, k, e = self.config.image_size, self.model.num_shape, self.model.num_expressions
+        n = len(self.model.landmark_indices)
+        return SynthBatch(
+            index=np.zeros(0, np.int64), image=np.zeros((0, s, s, 3), np.uint8), normals=np.zeros((0, 3, s, s), np.float32),
+            segmentation=np.zeros((0, s, s), np.uint8), depth=np.zeros((0, s, s), np.float32),
+            landmarks=np.zeros((0, n, 2), np.float32), landmark_visible=np.zeros((0, n), bool),
+            shape_coeffs=np.zeros((0, k), np.float32), expression_coeffs=np.zeros((0, e), np.float32),
+            angles=np.zeros((0, 3), np.float32), rotation=np.zeros((0, 3, 3), np.float32),
+            translation=np.zeros((0, 3), np.float32), intrinsics=np.zeros((0, 3), np.float32),
+        )  # fmt: skip
+
+
+def _check_int(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
+    if int(value) < 0:
+        raise ValueError(f"{name}: expected a non-negative integer, got {value}")
+    return int(value)

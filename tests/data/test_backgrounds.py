@@ -1,0 +1,34 @@
+import numpy as np
+import pytest
+
+from facenormals.data import random_background
+from facenormals.data.backgrounds import PhotoLibrary
+
+
+def test_backgrounds_are_deterministic_and_varied():
+    images = [random_background(np.random.default_rng(i), (64, 48)) for i in range(12)]
+    assert all(im.shape == (64, 48, 3) and im.dtype == np.uint8 for im in images)
+    again = random_background(np.random.default_rng(3), (64, 48))
+    assert np.array_equal(images[3], again)
+    assert len({im.tobytes() for im in images}) == 12
+    assert np.mean([im.std() for im in images]) > 5
+
+
+def test_photo_folder(tmp_path):
+    import cv2
+
+    photo = np.zeros((100, 150, 3), np.uint8)
+    photo[:, :75] = (0, 0, 255)  # BGR red on the left
+    cv2.imwrite(str(tmp_path / "a.png"), photo)
+    (tmp_path / "notes.txt").write_text("not an image")
+    library = PhotoLibrary([tmp_path], use_skimage=False)
+    assert len(library) == 1 and library.sources[0].endswith("a.png")
+    crop = random_background(np.random.default_rng(0), (32, 32), library, photo_probability=1.0)
+    assert crop.shape == (32, 32, 3)
+    with pytest.raises(ValueError, match="does not exist"):
+        PhotoLibrary([tmp_path / "missing"])
+
+
+def test_skimage_is_optional():
+    library = PhotoLibrary(use_skimage=True)  # scikit-image may be absent: then no photos, no error
+    assert len(library) >= 0

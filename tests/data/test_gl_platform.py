@@ -1,0 +1,56 @@
+import subprocess
+import sys
+
+import pytest
+
+from facenormals.data import HeadlessGLError, select_gl_platform
+
+
+def test_error_names_the_packages_to_install(monkeypatch):
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    monkeypatch.delitem(sys.modules, "OpenGL", raising=False)
+    with pytest.raises(HeadlessGLError) as info:
+        select_gl_platform(egl_probe=lambda: False, osmesa_probe=lambda: False)
+    message = str(info.value)
+    assert "libegl1" in message and "libosmesa6" in message and "apt-get install" in message
+    assert "PYOPENGL_PLATFORM" not in __import__("os").environ
+
+
+def test_egl_first_then_osmesa(monkeypatch):
+    monkeypatch.delitem(sys.modules, "OpenGL", raising=False)
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    assert select_gl_platform(egl_probe=lambda: True, osmesa_probe=lambda: True) == "egl"
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    assert select_gl_platform(egl_probe=lambda: False, osmesa_probe=lambda: True) == "osmesa"
+    import os
+
+    assert os.environ["PYOPENGL_PLATFORM"] == "osmesa"
+
+
+def test_an_explicit_choice_is_kept(monkeypatch):
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "osmesa")
+    assert select_gl_platform(egl_probe=lambda: True, osmesa_probe=lambda: False) == "osmesa"
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "glx")
+    with pytest.raises(HeadlessGLError, match="'glx' cannot render offscreen"):
+        select_gl_platform()
+
+
+def test_opengl_imported_too_early(monkeypatch):
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    monkeypatch.setitem(sys.modules, "OpenGL", object())
+    with pytest.raises(HeadlessGLError, match="OpenGL was imported before"):
+        select_gl_platform(egl_probe=lambda: True)
+
+
+def test_importing_the_package_imports_no_opengl():
+    code = "import sys, facenormals.data; assert 'OpenGL' not in sys.modules and 'pyrender' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_missing_pyrender_is_a_headless_gl_error(monkeypatch):
+    from facenormals.data.gl_platform import create_gl_context
+
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "egl")
+    monkeypatch.setitem(sys.modules, "pyrender", None)  # makes `import pyrender` fail
+    with pytest.raises(HeadlessGLError, match=r"pip install 'facenormals\[render\]'"):
+        create_gl_context()

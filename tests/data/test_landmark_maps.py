@@ -1,0 +1,54 @@
+import pytest
+import torch
+
+from facenormals.data import landmark_maps, landmarks_from_maps
+
+
+def test_gaussian_values_and_cut_off():
+    points = torch.tensor([[[10.25, 7.5], [3.0, 3.0]]], dtype=torch.float64)
+    maps = landmark_maps(points, torch.tensor([[True, False]]), (16, 20), sigma=1.5, radius=3.0)
+    assert maps.shape == (1, 2, 16, 20) and maps.dtype == torch.float64
+    v, u = torch.meshgrid(torch.arange(16.0), torch.arange(20.0), indexing="ij")
+    d2 = (u - 10.25) ** 2 + (v - 7.5) ** 2
+    expected = torch.where(d2 <= 4.5**2, torch.exp(-d2 / (2 * 1.5**2)), torch.zeros(()))
+    torch.testing.assert_close(maps[0, 0], expected.double())
+    assert (maps[0, 1] == 0).all(), "invisible landmarks leave their channel empty"
+
+
+def test_peak_is_one_at_integer_positions_and_nan_is_never_drawn():
+    maps = landmark_maps(torch.tensor([[[4.0, 5.0], [float("nan"), 1.0]]]), None, (8, 8))
+    assert float(maps[0, 0, 5, 4]) == 1.0 and float(maps[0, 0].max()) == 1.0
+    assert (maps[0, 1] == 0).all()
+
+
+@pytest.mark.parametrize("sigma", [1.0, 1.5, 2.5])
+def test_sub_pixel_peaks_round_trip(sigma):
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(3, 24, 2, generator=generator) * 100 + 10
+    visible = torch.rand(3, 24, generator=generator) > 0.3
+    maps = landmark_maps(points, visible, (128, 128), sigma=sigma)
+    peaks, found = landmarks_from_maps(maps)
+    assert torch.equal(found, visible)
+    assert torch.isnan(peaks[~visible]).all()
+    assert float((peaks - points).norm(dim=-1)[visible].max()) < 1e-3
+
+
+def test_border_landmark():
+    maps = landmark_maps(torch.tensor([[[0.2, 127.0]]]), None, (128, 128))
+    peaks, found = landmarks_from_maps(maps)
+    assert bool(found) and float((peaks[0, 0] - torch.tensor([0.2, 127.0])).norm()) <= 0.5
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError, match=r"points: expected shape \(B, L, 2\)"):
+        landmark_maps(torch.zeros(2, 3), None, (8, 8))
+    with pytest.raises(ValueError, match=r"visible: expected shape \(B, L\) with B=1"):
+        landmark_maps(torch.zeros(1, 3, 2), torch.ones(2, 3, dtype=torch.bool), (8, 8))
+    with pytest.raises(ValueError, match="visible: expected a bool tensor"):
+        landmark_maps(torch.zeros(1, 3, 2), torch.ones(1, 3), (8, 8))
+    with pytest.raises(ValueError, match="points: expected a floating-point tensor"):
+        landmark_maps(torch.zeros(1, 3, 2, dtype=torch.long), None, (8, 8))
+    with pytest.raises(ValueError, match="sigma"):
+        landmark_maps(torch.zeros(1, 3, 2), None, (8, 8), sigma=0.0)
+    with pytest.raises(ValueError, match=r"maps: expected shape \(B, L, H, W\)"):
+        landmarks_from_maps(torch.zeros(3, 8, 8))

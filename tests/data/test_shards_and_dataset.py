@@ -1,0 +1,175 @@
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from facenormals.data import HeadlessGLError, PhotoAugmentation, SynthConfig, SyntheticHeadDataset, write_dataset
+from facenormals.data.shards import read_manifest
+
+CONFIG = SynthConfig(occluder_probability=0.5)
+
+
+def _write(root, count=10, **kwargs):
+    try:
+        return write_dataset(root, count, workers=kwargs.pop("workers", 1), seed=kwargs.pop("seed", 1),
+                             model_spec="builtin", shard_size=kwargs.pop("shard_size", 4),
+                             config=kwargs.pop("config", CONFIG), progress=False, **kwargs)
+    except HeadlessGLError as error:
+        pytest.skip(f"no headless OpenGL: {error}")
+
+
+@pytest.fixture(scope="module")
+def dataset_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth")
+    summary = _write(root)
+    assert summary.shards_written == 3 and summary.samples == 10
+    return root
+
+
+def test_layout_and_manifest(dataset_root):
+    names = sorted(os.listdir(dataset_root))
+    assert names == ["manifest.json", "shard_00000.npz", "shard_00001.npz", "shard_00002.npz"]
+    manifest = read_manifest(dataset_root)
+    assert manifest["count"] == 10 and manifest["seed"] == 1 and manifest["model"]["name"] == "builtin"
+    assert SynthConfig.from_dict(manifest["config"]) == CONFIG
+    with np.load(dataset_root / "shard_00002.npz") as shard:  # plain numpy can read a shard
+        assert shard["index"].tolist() == [8, 9]
+        assert shard["image/0001"].shape == (128, 128, 3)
+        assert shard["normals/0000"].dtype == np.int16
+
+
+def test_dataset_items_match_the_generator(dataset_root):
+    from facenormals.data import SyntheticHeadGenerator
+
+    dataset = SyntheticHeadDataset(dataset_root)
+    assert len(dataset) == 10 and "samples=10" in repr(dataset)
+    item = dataset[9]
+    assert item["image"].shape == (3, 128, 128) and item["image"].dtype == torch.float32
+    assert item["landmark_maps"].shape == (24, 128, 128)
+    assert item["foreground"].shape == (1, 128, 128) and item["foreground"].dtype == torch.bool
+    assert int(item["index"]) == 9
+    with SyntheticHeadGenerator("builtin", CONFIG) as generator:
+        direct = generator.sample(1, 9)
+    assert torch.equal(item["image"], torch.from_numpy(direct.image[0]).permute(2, 0, 1).float() / 255)
+    assert float((item["normals"] - torch.from_numpy(direct.normals[0])).abs().max()) < 1e-4
+    assert torch.equal(item["foreground"][0], torch.from_numpy(direct.mask[0]))
+    assert torch.equal(item["landmark_visible"], torch.from_numpy(direct.landmark_visible[0]))
+    visible = item["landmark_visible"]
+    assert torch.equal(item["landmark_maps"].flatten(1).amax(-1) > 0, visible)
+    assert dataset[-1]["index"] == 9
+    with pytest.raises(IndexError):
+        dataset[10]
+
+
+def test_dataloader_with_two_workers(dataset_root):
+    dataset = SyntheticHeadDataset(dataset_root, augment=PhotoAugmentation())
+    dataset[0]  # open a shard in the parent: workers must not reuse its handle
+    loader = DataLoader(dataset, batch_size=4, shuffle=True, num_workers=2,
+                        generator=torch.Generator().manual_seed(0))
+    seen = []
+    for batch in loader:
+        assert batch["image"].shape[1:] == (3, 128, 128)
+        assert batch["normals"].shape[1:] == (3, 128, 128)
+        assert batch["landmark_maps"].shape[1:] == (24, 128, 128)
+        seen += batch["index"].tolist()
+    assert sorted(seen) == list(range(10))
+
+
+def test_resume_skips_finished_shards(dataset_root, tmp_path):
+    root = tmp_path / "copy"
+    root.mkdir()
+    for name in os.listdir(dataset_root):
+        (root / name).write_bytes((dataset_root / name).read_bytes())
+    os.remove(root / "shard_00001.npz")
+    (root / "shard_00002.npz").write_bytes(b"truncated")  # an unreadable shard is regenerated
+    before = os.stat(root / "shard_00000.npz").st_mtime_ns
+    summary = _write(root)
+    assert (summary.shards_written, summary.shards_skipped, summary.samples) == (2, 1, 6)
+    assert os.stat(root / "shard_00000.npz").st_mtime_ns == before
+    for name in ("shard_00001.npz", "shard_00002.npz"):
+        with np.load(root / name) as new, np.load(dataset_root / name) as old:
+            for key in ("image/0001", "normals/0000", "landmarks", "shape_coeffs"):
+                assert np.array_equal(new[key], old[key]), (name, key)
+    again = _write(root)
+    assert (again.shards_written, again.shards_skipped) == (0, 3)
+
+
+def test_extend_and_ranks(dataset_root, tmp_path):
+    root = tmp_path / "ranked"
+    first = _write(root, count=10, rank=1, world_size=2)
+    assert sorted(os.listdir(root)) == ["manifest.json", "shard_00001.npz"]
+    assert first.shards_written == 1
+    with pytest.raises(FileNotFoundError, match="1 of 3 shards are missing|2 of 3 shards are missing"):
+        SyntheticHeadDataset(root)
+    assert len(SyntheticHeadDataset(root, allow_missing=True)) == 4
+    with np.load(root / "shard_00001.npz") as ours, np.load(dataset_root / "shard_00001.npz") as reference:
+        assert np.array_equal(ours["image/0002"], reference["image/0002"])
+
+
+def test_settings_mismatch_is_refused(dataset_root, tmp_path):
+    root = tmp_path / "other"
+    root.mkdir()
+    (root / "manifest.json").write_text((dataset_root / "manifest.json").read_text())
+    with pytest.raises(ValueError, match="another seed"):
+        _write(root, seed=2)
+    with pytest.raises(ValueError, match="another shard_size"):
+        _write(root, shard_size=5)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"count": 0}, "count: expected an integer >= 1"),
+        ({"workers": 0}, "workers: expected an integer >= 1"),
+        ({"shard_size": 0}, "shard_size: expected an integer >= 1"),
+        ({"seed": -3}, "seed: expected an integer >= 0"),
+        ({"rank": 2, "world_size": 2}, "rank: expected 0 <= rank < world_size = 2"),
+        ({"config": {"fill": (0.4, 0.9)}}, "config: expected a SynthConfig"),
+    ],
+)
+def test_bad_arguments(tmp_path, kwargs, match):
+    args = {"count": 4, "workers": 1, "seed": 0, "shard_size": 4}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        write_dataset(tmp_path / "x", args.pop("count"), model_spec="builtin", progress=False, **args)
+
+
+def test_dataset_errors(tmp_path, dataset_root):
+    with pytest.raises(FileNotFoundError, match="no dataset manifest"):
+        SyntheticHeadDataset(tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(ValueError, match="format is 'something-else'"):
+        SyntheticHeadDataset(tmp_path)
+    with pytest.raises(ValueError, match="sigma"):
+        SyntheticHeadDataset(dataset_root, sigma=0)
+
+
+def test_worker_processes_write_the_same_bytes(dataset_root, tmp_path):
+    """Two spawned worker processes produce the shards that one in-process generator produced."""
+    summary = _write(tmp_path / "pool", count=10, workers=2, chunk_size=3)
+    assert summary.shards_written == 3
+    for name in ("shard_00000.npz", "shard_00002.npz"):
+        with np.load(tmp_path / "pool" / name) as new, np.load(dataset_root / name) as old:
+            assert sorted(new.files) == sorted(old.files)
+            for key in new.files:
+                assert np.array_equal(new[key], old[key]), (name, key)
+
+
+def test_worker_start_errors_reach_the_caller(tmp_path, monkeypatch):
+    from facenormals.data import shards
+    from facenormals.models import ModelFileError
+
+    shards._init_worker(str(tmp_path / "missing.npz"), CONFIG, 0, None)  # the error waits for the first task
+    with pytest.raises(ModelFileError, match="missing.npz"):
+        shards._work((0, 1))
+    shards._WORKER.clear()
+
+    def no_gl():
+        raise HeadlessGLError("no headless OpenGL found: install libegl1")
+
+    monkeypatch.setattr("facenormals.data.gl_platform.select_gl_platform", no_gl)
+    with pytest.raises(HeadlessGLError, match="libegl1"):
+        write_dataset(tmp_path / "x", 2, workers=2, model_spec="builtin", progress=False)
