@@ -32,3 +32,14 @@ def test_photo_folder(tmp_path):
 def test_skimage_is_optional():
     library = PhotoLibrary(use_skimage=True)  # scikit-image may be absent: then no photos, no error
     assert len(library) >= 0
+
+
+def test_real_photo_crops_come_from_scikit_image():
+    """The issue asks for crops of real photos from a package that ships images."""
+    pytest.importorskip("skimage")
+    from facenormals.data.backgrounds import PhotoLibrary
+
+    library = PhotoLibrary()
+    assert len(library) >= 10
+    assert all(source.startswith("skimage.data.") for source in library.sources)
+    assert "skimage.data.astronaut" not in library.sources  # no faces in the backgrounds
