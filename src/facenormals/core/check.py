@@ -8,12 +8,21 @@ shape and the received one, e.g.::
 
 from __future__ import annotations
 
+import math
+from numbers import Real
 from typing import Sequence
 
 import torch
 from torch import Tensor
 
-__all__ = ["check_finite", "check_floating", "check_same_dims", "check_shape", "check_tensor"]
+__all__ = [
+    "check_finite",
+    "check_floating",
+    "check_nonnegative",
+    "check_same_dims",
+    "check_shape",
+    "check_tensor",
+]
 
 
 def _format_shape(shape: Sequence[str | int]) -> str:
@@ -123,3 +132,18 @@ def check_finite(x: Tensor, name: str) -> None:
     if not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).sum())
         raise ValueError(f"{name}: expected finite values, got {bad} NaN or infinite entries")
+
+
+def check_nonnegative(value: object, name: str) -> float:
+    """Return ``value`` as a float, raising ``ValueError`` unless it is a finite real number >= 0.
+
+    Example:
+        >>> check_nonnegative(0.5, "weight")
+        0.5
+    """
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise ValueError(f"{name}: expected a real number, got {type(value).__name__}")
+    number = float(value)
+    if not math.isfinite(number) or number < 0:
+        raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    return number

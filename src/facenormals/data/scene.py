@@ -23,6 +23,16 @@ LABELS = {"background": 0, "skin": 1, "eyes": 2, "mouth": 3, "hair": 4, "headwea
 HEAD_LABELS = (LABELS["skin"], LABELS["eyes"], LABELS["mouth"])
 
 
+def _capped_tube_faces(ring_size: int, num_rings: int) -> np.ndarray:
+    """Triangles joining ``num_rings`` consecutive rings of ``ring_size`` points, closed by a fan to the
+    apex point stored right after them (index ``num_rings * ring_size``)."""
+    k = ring_size
+    faces = [ring_strip(np.arange(i * k, (i + 1) * k), np.arange((i + 1) * k, (i + 2) * k)) for i in range(num_rings - 1)]
+    last = np.arange((num_rings - 1) * k, num_rings * k)
+    faces.append(np.stack([last, np.roll(last, -1), np.full(k, num_rings * k)], axis=1))
+    return np.concatenate(faces)
+
+
 def _orient(vertices: np.ndarray, faces: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """Flip all faces if their area-weighted normals point against ``direction`` on average."""
     if np.sum(face_normals(vertices, faces) @ direction) < 0:
@@ -138,10 +148,7 @@ def mouth_part(assets: HeadAssets, vertices: np.ndarray, rng: np.random.Generato
     apex = middle + np.array([0.0, 2.0, 24.0])
     points = np.concatenate(rings + [apex[None]])
     k = len(lips)
-    faces = [ring_strip(np.arange(i * k, (i + 1) * k), np.arange((i + 1) * k, (i + 2) * k)) for i in range(3)]
-    last = np.arange(3 * k, 4 * k)
-    faces.append(np.stack([last, np.roll(last, -1), np.full(k, 4 * k)], axis=1))
-    faces = _orient(points, np.concatenate(faces), np.array([0.0, 0.0, -1.0]))
+    faces = _orient(points, _capped_tube_faces(k, len(rings)), np.array([0.0, 0.0, -1.0]))
     teeth = srgb_to_linear(np.array([0.93, 0.9, 0.8]) * rng.uniform(0.75, 1.0))
     gum = lip_color * 0.6
     throat = srgb_to_linear(np.array([0.25, 0.05, 0.05])) * rng.uniform(0.3, 0.8)
@@ -174,10 +181,7 @@ def clothing_part(assets: HeadAssets, vertices: np.ndarray, rng: np.random.Gener
     bottom = middle + np.array([0.0, 260.0, 0.0])
     points = np.concatenate(rings + [bottom[None]])
     k = len(neck)
-    faces = [ring_strip(np.arange(i * k, (i + 1) * k), np.arange((i + 1) * k, (i + 2) * k)) for i in range(3)]
-    last = np.arange(3 * k, 4 * k)
-    faces.append(np.stack([last, np.roll(last, -1), np.full(k, 4 * k)], axis=1))
-    faces = np.concatenate(faces)
+    faces = _capped_tube_faces(k, len(rings))
     outward = np.sum(face_normals(points, faces) * (points[faces].mean(1) - middle) * np.array([1.0, 0.0, 1.0]))
     if outward < 0:
         faces = faces[:, ::-1].copy()

@@ -17,24 +17,14 @@ missing landmarks) are **exactly zero** and have a zero gradient; they are selec
 from __future__ import annotations
 
 import math
-from numbers import Real
 
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_nonnegative, check_shape
 from facenormals.sampling.bicubic import sample_bicubic
 
 __all__ = ["landmark_residuals", "normal_residuals", "prior_residuals"]
-
-
-def _sqrt_weight(weight: float) -> float:
-    if isinstance(weight, bool) or not isinstance(weight, Real):
-        raise ValueError(f"weight: expected a real number, got {type(weight).__name__}")
-    value = float(weight)
-    if not math.isfinite(value) or value < 0:
-        raise ValueError(f"weight: expected a finite number >= 0, got {value}")
-    return math.sqrt(value)
 
 
 def _check_same_dtype_device(reference: Tensor, reference_name: str, **tensors: Tensor) -> None:
@@ -142,7 +132,7 @@ def normal_residuals(
         check_floating(x, name)
     _check_same_dtype_device(normal_map, "normal_map", pixels=pixels, normals=normals)
     _check_mask(visible, "visible", dims, "N", normal_map.device)
-    scale = _sqrt_weight(weight)
+    scale = math.sqrt(check_nonnegative(weight, "weight"))
 
     sampled, inside = sample_bicubic(normal_map, pixels)
     valid = inside & _foreground(normal_map, pixels)
@@ -201,7 +191,7 @@ def landmark_residuals(
     check_floating(targets, "targets")
     _check_same_dtype_device(pixels, "pixels", targets=targets)
     _check_mask(mask, "mask", dims, "L", pixels.device)
-    scale = _sqrt_weight(weight)
+    scale = math.sqrt(check_nonnegative(weight, "weight"))
 
     if mask is None:
         residuals = pixels - targets
@@ -251,7 +241,7 @@ def prior_residuals(coeffs: Tensor, std: Tensor, weight: float = 1.0) -> Tensor:
     check_floating(coeffs, "coeffs")
     check_floating(std, "std")
     _check_same_dtype_device(coeffs, "coeffs", std=std)
-    scale = _sqrt_weight(weight)
+    scale = math.sqrt(check_nonnegative(weight, "weight"))
     if not torch.compiler.is_compiling() and not bool((std > 0).all()):
         raise ValueError(f"std: expected values > 0, got {int((~(std > 0)).sum())} entries <= 0 or NaN")
 

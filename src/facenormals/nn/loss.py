@@ -2,23 +2,15 @@ r"""Training loss of :class:`~facenormals.nn.unet.NormalLandmarkUNet`."""
 
 from __future__ import annotations
 
-import math
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_nonnegative, check_shape
 from facenormals.nn.unet import UNetOutput
 
 __all__ = ["normal_landmark_loss"]
-
-
-def _check_weight(value: float, name: str) -> float:
-    value = float(value)
-    if not (math.isfinite(value) and value >= 0.0):
-        raise ValueError(f"{name}: expected a finite value >= 0, got {value}")
-    return value
 
 
 def normal_landmark_loss(
@@ -92,8 +84,8 @@ def normal_landmark_loss(
         ("landmarks_gt", landmarks_gt),
     ):
         check_floating(x, name)
-    landmark_weight = _check_weight(landmark_weight, "landmark_weight")
-    foreground_weight = _check_weight(foreground_weight, "foreground_weight")
+    landmark_weight = check_nonnegative(landmark_weight, "landmark_weight")
+    foreground_weight = check_nonnegative(foreground_weight, "foreground_weight")
 
     normals = output.normals
     if foreground_gt is None:

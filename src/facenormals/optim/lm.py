@@ -26,7 +26,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
 
@@ -160,8 +160,7 @@ def _check_options(
             raise ValueError(f"damping: expected a finite number >= 0 or a (B,) tensor of them, got {damping!r}")
         damping = 0.0
     for name, value in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol), ("damping", damping)):
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+        check_nonnegative(value, name)
     if not (math.isfinite(min_damping) and min_damping > 0):
         raise ValueError(f"min_damping: expected a finite number > 0, got {min_damping!r}")
     if not max_damping > min_damping:
