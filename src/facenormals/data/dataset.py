@@ -32,6 +32,8 @@ class SyntheticHeadDataset(Dataset):
             :class:`~facenormals.data.PhotoAugmentation`.
         allow_missing: serve only the complete shards present instead of raising when some are
             missing (e.g. while other ranks are still writing).
+        with_landmark_maps: rasterise ``landmark_maps`` per item; training loops that rasterise
+            whole batches on their device (cheaper than collating ``L`` full maps) pass ``False``.
 
     Raises:
         FileNotFoundError: if the manifest or (unless ``allow_missing``) a shard is missing.
@@ -42,7 +44,7 @@ class SyntheticHeadDataset(Dataset):
     - ``image`` ``(3, H, W)`` float32 in ``[0, 1]``;
     - ``normals`` ``(3, H, W)`` float32 camera-frame unit normals, 0 off the head;
     - ``foreground`` ``(1, H, W)`` bool, the head surface (where ``normals`` is non-zero);
-    - ``landmark_maps`` ``(L, H, W)`` float32;
+    - ``landmark_maps`` ``(L, H, W)`` float32 (unless ``with_landmark_maps=False``);
     - ``landmarks`` ``(L, 2)`` float32 pixels and ``landmark_visible`` ``(L,)`` bool;
     - ``segmentation`` ``(H, W)`` uint8 labels;
     - ``shape_coeffs`` ``(K,)``, ``expression_coeffs`` ``(E,)``, ``angles`` ``(3,)``, ``rotation``
@@ -55,6 +57,7 @@ class SyntheticHeadDataset(Dataset):
         sigma: float = DEFAULT_SIGMA,
         augment: Callable[[torch.Tensor], torch.Tensor] | None = None,
         allow_missing: bool = False,
+        with_landmark_maps: bool = True,
     ) -> None:
         self.root = Path(root)
         self.manifest = read_manifest(self.root)
@@ -62,6 +65,7 @@ class SyntheticHeadDataset(Dataset):
             raise ValueError(f"sigma: expected a positive value, got {sigma}")
         self.sigma = float(sigma)
         self.augment = augment
+        self.with_landmark_maps = bool(with_landmark_maps)
         self.count = int(self.manifest["count"])
         self.shard_size = int(self.manifest["shard_size"])
         self.image_size = int(self.manifest["image_size"])
@@ -116,8 +120,9 @@ class SyntheticHeadDataset(Dataset):
         segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
         sample = {name: torch.from_numpy(np.array(table[name][i])) for name in SHARD_ARRAYS}
         size = (self.image_size, self.image_size)
-        sample["landmark_maps"] = landmark_maps(sample["landmarks"][None], sample["landmark_visible"][None], size,
-                                                self.sigma)[0]
+        if self.with_landmark_maps:
+            sample["landmark_maps"] = landmark_maps(sample["landmarks"][None], sample["landmark_visible"][None], size,
+                                                    self.sigma)[0]
         if self.augment is not None:
             image = self.augment(image)
         sample["image"] = image

@@ -1,6 +1,7 @@
-"""Network: a U-Net from a photo to a normal map, landmark maps and a foreground mask, and its loss."""
+"""Network: a U-Net from a photo to a normal map, landmark maps and a foreground mask, its loss and weights."""
 
 from facenormals.nn.loss import normal_landmark_loss
+from facenormals.nn.pretrained import load_weights, pretrained_weights_path
 from facenormals.nn.unet import NormalLandmarkUNet, UNetOutput
 
-__all__ = ["NormalLandmarkUNet", "UNetOutput", "normal_landmark_loss"]
+__all__ = ["NormalLandmarkUNet", "UNetOutput", "load_weights", "normal_landmark_loss", "pretrained_weights_path"]

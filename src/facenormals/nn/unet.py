@@ -221,7 +221,7 @@ class NormalLandmarkUNet(nn.Module):
             skips.append(x)
         for i in range(self.depth - 1, -1, -1):
             x = self.up[i](x, skips[i])
-        raw = self.head(x)
+        raw = self.head(x).to(images.dtype)  # float32 normalisation under bf16 autocast
 
         raw_normals = raw[:, :3]
         # clamp before the sqrt: exactly unit where |n| >= eps, finite gradients everywhere.

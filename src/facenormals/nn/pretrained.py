@@ -1,0 +1,61 @@
+"""Load trained :class:`~facenormals.nn.NormalLandmarkUNet` weights, including the ones shipped in the package."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+import torch
+
+from facenormals.nn.unet import NormalLandmarkUNet
+
+__all__ = ["load_weights", "pretrained_weights_path"]
+
+WEIGHTS_FORMAT = "facenormals-unet"
+WEIGHTS_VERSION = 1
+_SHIPPED = "normal_landmark_unet.pt"
+
+
+def pretrained_weights_path() -> Path:
+    """Path of the weights shipped inside the package (see ``docs/model_card.md``)."""
+    return Path(str(resources.files("facenormals") / "weights" / _SHIPPED))
+
+
+def load_weights(path: str | Path | None = None, device: str | torch.device = "cpu") -> NormalLandmarkUNet:
+    """Build the network stored in a weight file and load its weights (float32, ``eval()`` mode).
+
+    Args:
+        path: a file written by :func:`~facenormals.training.export_weights`; ``None`` loads the
+            shipped weights.
+        device: where to put the network.
+
+    Raises:
+        FileNotFoundError: if the file does not exist.
+        ValueError: if it is not a facenormals weight file or does not match its architecture.
+
+    Example:
+        >>> net = load_weights()
+        >>> net.num_landmarks, net.training
+        (24, False)
+    """
+    path = pretrained_weights_path() if path is None else Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such weight file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
+        raise ValueError(f"{path}: not a readable weight file ({error})") from None
+    if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
+        raise ValueError(f"{path}: not a facenormals network weight file")
+    if payload.get("version") != WEIGHTS_VERSION:
+        raise ValueError(f"{path}: weight format version {payload.get('version')}, expected {WEIGHTS_VERSION}")
+    arch = payload["architecture"]
+    net = NormalLandmarkUNet(num_landmarks=int(arch["num_landmarks"]), base_channels=int(arch["base_channels"]),
+                             depth=int(arch["depth"]))
+    state = {k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as error:
+        raise ValueError(f"{path}: weights do not match the architecture {arch} ({error})") from None
+    net.metadata = dict(payload.get("metadata", {}))
+    return net.to(device).eval()

@@ -1,0 +1,76 @@
+"""Training checkpoints (resumable) and the small shipped weight files made from them."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
+
+__all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
+
+
+def save_checkpoint(path: str | Path, state: dict) -> Path:
+    """Write ``state`` with :func:`torch.save` atomically (temporary file, then rename).
+
+    A run killed while saving keeps its previous checkpoint.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        ValueError: if it is not a facenormals training checkpoint.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
+        raise ValueError(f"{path}: not a readable checkpoint ({error})") from None
+    if not isinstance(state, dict) or state.get("format") != "facenormals-train":
+        raise ValueError(f"{path}: not a facenormals training checkpoint")
+    return state
+
+
+def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True,
+                   dtype: torch.dtype = torch.float16, metadata: dict | None = None) -> Path:
+    """Turn a training checkpoint into a weight file for :func:`~facenormals.nn.load_weights`.
+
+    Args:
+        checkpoint: a ``last.pt`` of a training run.
+        out: the weight file to write.
+        use_ema: export the moving average of the weights (what the run evaluates) rather than
+            the raw weights.
+        dtype: storage dtype of floating tensors (float16 halves the file; weights are cast back
+            to float32 when loaded).
+        metadata: extra JSON-able facts to store (metrics, data, hardware).
+
+    Returns:
+        ``out``.
+    """
+    state = load_checkpoint(checkpoint)
+    weights = state["ema" if use_ema else "model"]
+    tensors = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in weights.items()}
+    config = state["config"]
+    payload = {
+        "format": WEIGHTS_FORMAT,
+        "version": WEIGHTS_VERSION,
+        "architecture": {"base_channels": config["base_channels"], "depth": config["depth"],
+                         "num_landmarks": state["num_landmarks"]},
+        "state_dict": tensors,
+        "metadata": {"step": state["step"], "samples_seen": state["samples_seen"], "ema": use_ema,
+                     "train_config": config, **(metadata or {})},
+    }
+    return save_checkpoint(out, payload)

@@ -1,0 +1,118 @@
+"""Configuration of a training run of :class:`~facenormals.nn.NormalLandmarkUNet`."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+__all__ = ["TrainConfig"]
+
+
+@dataclass
+class TrainConfig:
+    r"""Everything that defines a training run (stored in every checkpoint).
+
+    The defaults are the project's recipe for a 2-core CPU or one GPU; ``docs/model_card.md``
+    compares it with the paper's (RMSprop, learning rate 1e-5, batch 32, ~3,000 epochs).
+
+    Attributes:
+        data: training dataset folder written by ``facenormals synth``.
+        out: run folder: ``last.pt`` (checkpoint), ``log.csv``, ``eval.csv``.
+        holdout: held-out dataset folder scored every ``eval_every`` steps (optional).
+        steps: optimiser steps in the whole run (the learning-rate schedule spans them).
+        batch_size: images per step *per process* (DDP multiplies it by the world size).
+        lr: peak AdamW learning rate, reached after ``warmup_steps`` linear steps, then a cosine
+            decay to ``min_lr_ratio * lr`` at ``steps``.
+        weight_decay: AdamW's decoupled weight decay.
+        ema_decay: decay of the exponential moving average of the weights that is evaluated and
+            exported (an "anytime" model: good even if the run is stopped early).
+        landmark_weight: :math:`w_Z` of the loss. The paper's :math:`L_N + L_Z` sums the two
+            unweighted; with :math:`L_Z` averaged over all ``L·H·W`` entries, most of them zero,
+            :math:`L_Z` is ~100x smaller than :math:`L_N` at the start, so it is scaled up.
+        foreground_weight: weight of the foreground cross-entropy (our addition).
+        sigma: landmark Gaussian standard deviation in pixels.
+        workers: DataLoader worker processes per training process.
+        device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+        precision: ``"bf16"`` (autocast), ``"fp32"`` or ``"auto"`` (bf16 where the hardware has
+            native bf16: CUDA compute capability ≥ 8, or a CPU with AVX512-BF16/AMX).
+        threads: torch intra-op threads on CPU (``None``: torch's default).
+        seed: seed of the data order, the augmentation and the initial weights.
+        log_every, checkpoint_every, eval_every: intervals in steps.
+        eval_samples: held-out samples scored at each evaluation (all at the end of the run).
+        max_minutes: stop cleanly (with a checkpoint) after this wall time; resume later.
+        base_channels, depth: the network's width and depth.
+    """
+
+    data: str
+    out: str
+    holdout: str | None = None
+    steps: int = 12000
+    batch_size: int = 32
+    lr: float = 2e-3
+    warmup_steps: int = 200
+    min_lr_ratio: float = 0.05
+    weight_decay: float = 1e-4
+    ema_decay: float = 0.999
+    landmark_weight: float = 100.0
+    foreground_weight: float = 1.0
+    sigma: float = 1.5
+    workers: int = 1
+    device: str = "auto"
+    precision: str = "auto"
+    threads: int | None = None
+    seed: int = 0
+    log_every: int = 25
+    checkpoint_every: int = 250
+    eval_every: int = 1000
+    eval_samples: int = 256
+    max_minutes: float | None = None
+    base_channels: int = 16
+    depth: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "log_every", "checkpoint_every", "eval_every", "eval_samples",
+                     "base_channels", "depth"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        for name in ("warmup_steps", "workers"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
+        for name in ("lr", "sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected a positive value, got {getattr(self, name)!r}")
+        for name in ("weight_decay", "landmark_weight", "foreground_weight"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name}: expected a non-negative value, got {getattr(self, name)!r}")
+        for name in ("ema_decay", "min_lr_ratio"):
+            if not 0.0 <= getattr(self, name) < 1.0 + (name == "min_lr_ratio"):
+                raise ValueError(f"{name}: expected a value in [0, 1], got {getattr(self, name)!r}")
+        if self.precision not in ("auto", "bf16", "fp32"):
+            raise ValueError(f"precision: expected 'auto', 'bf16' or 'fp32', got {self.precision!r}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads: expected a positive integer or None, got {self.threads!r}")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise ValueError(f"max_minutes: expected a positive value or None, got {self.max_minutes!r}")
+
+    def learning_rate(self, step: int) -> float:
+        """The learning rate of optimiser step ``step`` (0-based): linear warm-up, then cosine decay."""
+        import math
+
+        if step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        span = max(1, self.steps - self.warmup_steps)
+        progress = min(1.0, (step - self.warmup_steps) / span)
+        floor = self.min_lr_ratio * self.lr
+        return floor + (self.lr - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "TrainConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"config: unknown fields {unknown}")
+        return cls(**values)

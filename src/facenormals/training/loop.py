@@ -1,0 +1,269 @@
+r"""The training loop: resumable, logged, on CPU or CUDA, single-process or under ``torchrun`` (DDP).
+
+One optimiser step takes ``batch_size`` samples per process in a deterministic order (a fresh
+permutation of the dataset per epoch from ``(seed, epoch)``, dealt round-robin to the ranks), so a
+run resumed from ``last.pt`` continues exactly where it stopped. The landmark maps are rasterised
+per batch on the training device and the paper's blur + noise augmentation runs there too.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import math
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from facenormals.data.augment import PhotoAugmentation
+from facenormals.data.landmark_maps import landmark_maps
+from facenormals.nn.loss import normal_landmark_loss
+from facenormals.nn.unet import NormalLandmarkUNet, UNetOutput
+from facenormals.training.checkpoint import load_checkpoint, save_checkpoint
+from facenormals.training.config import TrainConfig
+from facenormals.training.distributed import DistContext, init_distributed, resolve_precision
+from facenormals.training.metrics import NetworkMetrics, evaluate_network
+
+__all__ = ["TrainSummary", "train"]
+
+_LOG_FIELDS = ["step", "epoch", "samples_seen", "loss", "normals", "landmarks", "foreground", "lr",
+               "images_per_s", "elapsed_s"]
+_EVAL_FIELDS = ["step", "samples_seen"] + list(NetworkMetrics.__dataclass_fields__)
+
+
+@dataclass
+class TrainSummary:
+    """What :func:`train` did.
+
+    Attributes:
+        step: optimiser steps completed in the whole run (including earlier sessions).
+        samples_seen: training samples consumed in the whole run, over all processes.
+        finished: ``step == config.steps``.
+        stopped_by: ``"steps"``, ``"max_minutes"`` or ``"signal"``.
+        seconds: wall time of this call.
+        metrics: the last held-out evaluation (``None`` without a holdout).
+        checkpoint: path of ``last.pt``.
+    """
+
+    step: int
+    samples_seen: int
+    finished: bool
+    stopped_by: str
+    seconds: float
+    metrics: NetworkMetrics | None
+    checkpoint: Path
+
+
+class _EpochSampler(Sampler[int]):
+    """Endless, deterministic sample order: per-epoch permutations from ``(seed, epoch)``, split by rank."""
+
+    def __init__(self, size: int, seed: int, rank: int, world_size: int, start: int = 0) -> None:
+        self.size, self.seed, self.rank, self.world = size, seed, rank, world_size
+        self.per_rank = size // world_size
+        if self.per_rank == 0:
+            raise ValueError(f"data: {size} samples cannot be split over {world_size} processes")
+        self.start = start  # samples of this rank already consumed
+
+    def __iter__(self) -> Iterator[int]:
+        epoch, offset = divmod(self.start, self.per_rank)
+        while True:
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + epoch)
+            order = torch.randperm(self.size, generator=g)[self.rank : self.per_rank * self.world : self.world]
+            yield from order[offset:].tolist()
+            epoch, offset = epoch + 1, 0
+
+
+def _open_dataset(root: str, config: TrainConfig, with_maps: bool) -> Dataset:
+    from facenormals.data.dataset import SyntheticHeadDataset
+
+    return SyntheticHeadDataset(root, sigma=config.sigma, with_landmark_maps=with_maps)
+
+
+def _append_csv(path: Path, fields: list[str], row: dict) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        if new:
+            writer.writeheader()
+        writer.writerow({k: row[k] for k in fields})
+
+
+def _float_outputs(out: UNetOutput) -> UNetOutput:
+    return UNetOutput(*(t.float() for t in out))
+
+
+def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset | None = None,
+          progress: bool = True) -> TrainSummary:
+    """Train (or resume training) a :class:`~facenormals.nn.NormalLandmarkUNet`.
+
+    If ``config.out/last.pt`` exists the run resumes from it (model, moving average, optimiser,
+    step and data position); its architecture must match ``config``. A checkpoint is written every
+    ``checkpoint_every`` steps, at the end, after ``max_minutes`` and on SIGINT/SIGTERM. Rank 0
+    writes ``log.csv`` (losses, learning rate, throughput) and ``eval.csv`` (held-out metrics of
+    the moving-average weights).
+
+    Args:
+        config: the run.
+        dataset: training items (default: ``SyntheticHeadDataset(config.data)``); items need
+            ``image``, ``normals``, ``foreground``, ``landmarks`` and ``landmark_visible``.
+        holdout: held-out items (default: ``config.holdout`` when set).
+        progress: show a progress bar on rank 0.
+
+    Returns:
+        A :class:`TrainSummary`.
+    """
+    ctx = init_distributed(config.device)
+    if config.threads is not None and ctx.device.type == "cpu":
+        torch.set_num_threads(config.threads)
+    out = Path(config.out)
+    if ctx.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+    autocast_dtype = resolve_precision(config.precision, ctx.device)
+    if dataset is None:
+        dataset = _open_dataset(config.data, config, with_maps=False)
+    if holdout is None and config.holdout and ctx.is_main:
+        holdout = _open_dataset(config.holdout, config, with_maps=False)
+
+    torch.manual_seed(config.seed)
+    net = NormalLandmarkUNet(base_channels=config.base_channels, depth=config.depth).to(ctx.device)
+    ema = copy.deepcopy(net).eval().requires_grad_(False)
+    optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    step, samples_seen = 0, 0
+    last = out / "last.pt"
+    if last.exists():
+        state = load_checkpoint(last, map_location=ctx.device)
+        for key in ("base_channels", "depth"):
+            if state["config"][key] != getattr(config, key):
+                raise ValueError(f"config.{key}: {getattr(config, key)} differs from the checkpoint's "
+                                 f"{state['config'][key]} in {last}; use another --out to start afresh")
+        if state["world_size"] != ctx.world_size or state["config"]["batch_size"] != config.batch_size:
+            print(f"note: resuming with world size {ctx.world_size} x batch {config.batch_size} "
+                  f"(checkpoint: {state['world_size']} x {state['config']['batch_size']}); the data order restarts")
+        net.load_state_dict(state["model"])
+        ema.load_state_dict(state["ema"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, samples_seen = int(state["step"]), int(state["samples_seen"])
+    model = net
+    if ctx.distributed:
+        model = torch.nn.parallel.DistributedDataParallel(
+            net, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None)
+
+    per_rank_seen = samples_seen // ctx.world_size
+    sampler = _EpochSampler(len(dataset), config.seed, ctx.rank, ctx.world_size, start=per_rank_seen)
+    loader = DataLoader(dataset, batch_size=config.batch_size, sampler=sampler, num_workers=config.workers,
+                        pin_memory=ctx.device.type == "cuda", drop_last=True,
+                        persistent_workers=config.workers > 0)
+    augment = PhotoAugmentation().to(ctx.device)
+
+    def checkpoint() -> None:
+        if ctx.is_main:
+            save_checkpoint(last, {
+                "format": "facenormals-train", "config": config.to_dict(), "step": step,
+                "samples_seen": samples_seen, "world_size": ctx.world_size, "num_landmarks": net.num_landmarks,
+                "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
+            })
+
+    def evaluate(max_samples: int | None) -> NetworkMetrics | None:
+        if holdout is None or not ctx.is_main:
+            return None
+        metrics = evaluate_network(ema, holdout, batch_size=config.batch_size, max_samples=max_samples)
+        _append_csv(out / "eval.csv", _EVAL_FIELDS, {"step": step, "samples_seen": samples_seen, **metrics.as_dict()})
+        return metrics
+
+    stop_signal: list[int] = []
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[sig] = signal.signal(sig, lambda s, f: stop_signal.append(s))
+        except ValueError:  # not the main thread
+            pass
+
+    bar = None
+    if progress and ctx.is_main:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.steps, initial=step, desc="train", unit="step", dynamic_ncols=True)
+    start = time.perf_counter()
+    window_start, window_images = start, 0
+    stopped_by = "steps"
+    metrics: NetworkMetrics | None = None
+    running: dict[str, float] = {}
+    try:
+        batches = iter(loader)
+        while step < config.steps:
+            if stop_signal:
+                stopped_by = "signal"
+                break
+            if config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes:
+                stopped_by = "max_minutes"
+                break
+            batch = next(batches)
+            torch.manual_seed((config.seed * 1_000_003 + step) * ctx.world_size + ctx.rank)  # resumable augmentation
+            images = augment(batch["image"].to(ctx.device, non_blocking=True))
+            normals = batch["normals"].to(ctx.device, non_blocking=True)
+            foreground = batch["foreground"].to(ctx.device, non_blocking=True)
+            points = batch["landmarks"].to(ctx.device, non_blocking=True)
+            maps = landmark_maps(points, batch["landmark_visible"].to(ctx.device), images.shape[-2:], config.sigma)
+            lr = config.learning_rate(step)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            with torch.autocast(ctx.device.type, dtype=autocast_dtype or torch.bfloat16,
+                                enabled=autocast_dtype is not None):
+                prediction = model(images)
+            loss, terms = normal_landmark_loss(_float_outputs(prediction), normals, maps, foreground,
+                                               config.landmark_weight, config.foreground_weight)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"step {step}: the loss is {float(loss)}; lower --lr "
+                                         f"or resume from the last checkpoint {last}")
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            with torch.no_grad():
+                decay = min(config.ema_decay, (1.0 + step) / (10.0 + step))
+                for e, p in zip(ema.parameters(), net.parameters()):
+                    e.lerp_(p, 1.0 - decay)
+                for e, b in zip(ema.buffers(), net.buffers()):
+                    e.copy_(b)
+            step += 1
+            samples_seen += config.batch_size * ctx.world_size
+            window_images += config.batch_size * ctx.world_size
+            for key, value in (("loss", loss), *terms.items()):
+                running[key] = running.get(key, 0.0) + float(value.detach())
+            if step % config.log_every == 0 or step == config.steps:
+                now = time.perf_counter()
+                n = config.log_every if step % config.log_every == 0 else step % config.log_every
+                row = {k: v / n for k, v in running.items()}
+                row.update(step=step, epoch=samples_seen / len(dataset), samples_seen=samples_seen, lr=lr,
+                           images_per_s=window_images / max(now - window_start, 1e-9),
+                           elapsed_s=now - start)
+                running, window_start, window_images = {}, now, 0
+                if ctx.is_main:
+                    _append_csv(out / "log.csv", _LOG_FIELDS, row)
+                    if bar is not None:
+                        bar.set_postfix(loss=f"{row['loss']:.4f}", img_s=f"{row['images_per_s']:.1f}")
+            if bar is not None:
+                bar.update(1)
+            if step % config.checkpoint_every == 0:
+                checkpoint()
+            if step % config.eval_every == 0 and step < config.steps:
+                metrics = evaluate(config.eval_samples)
+                if metrics is not None and bar is not None:
+                    bar.write(f"step {step}: {metrics}")
+        checkpoint()
+        if step >= config.steps:
+            metrics = evaluate(None)
+    finally:
+        if bar is not None:
+            bar.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if ctx.distributed and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+    return TrainSummary(step=step, samples_seen=samples_seen, finished=step >= config.steps,
+                        stopped_by=stopped_by, seconds=time.perf_counter() - start, metrics=metrics,
+                        checkpoint=last)

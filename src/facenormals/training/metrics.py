@@ -1,0 +1,129 @@
+"""Held-out metrics of the network: normal angles, landmark errors and visibility decisions."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset, Subset
+
+from facenormals.core.check import check_shape
+from facenormals.data.landmark_maps import landmarks_from_maps
+from facenormals.nn.unet import NormalLandmarkUNet
+
+__all__ = ["NetworkMetrics", "evaluate_network", "normal_angles"]
+
+
+@dataclass
+class NetworkMetrics:
+    """Scores of a network on a held-out set (the targets are the network issue's).
+
+    Attributes:
+        samples: images scored.
+        normal_mean_deg, normal_median_deg: angle between predicted and true unit normals over
+            the true foreground pixels of all images (target ≤ 12° and ≤ 8°).
+        landmark_mean_px, landmark_median_px: distance from each truly visible landmark to the
+            sub-pixel peak of its predicted map, whether or not the peak passes the detection
+            threshold (target ≤ 2.5 px and ≤ 1.5 px).
+        visibility_accuracy: fraction of all (image, landmark) pairs where "peak above threshold"
+            equals the true visibility (target ≥ 0.95).
+        foreground_iou: intersection over union of the predicted and true foreground.
+    """
+
+    samples: int
+    normal_mean_deg: float
+    normal_median_deg: float
+    landmark_mean_px: float
+    landmark_median_px: float
+    visibility_accuracy: float
+    foreground_iou: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def __str__(self) -> str:
+        return (f"{self.samples} images: normals mean {self.normal_mean_deg:.2f} deg, median "
+                f"{self.normal_median_deg:.2f} deg; landmarks mean {self.landmark_mean_px:.2f} px, median "
+                f"{self.landmark_median_px:.2f} px; visibility {100 * self.visibility_accuracy:.1f} %; "
+                f"foreground IoU {self.foreground_iou:.3f}")
+
+
+def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Angles in degrees between two normal maps at the pixels of ``mask``.
+
+    Shape:
+        - predicted, target: :math:`(B, 3, H, W)`; mask: :math:`(B, 1, H, W)` bool
+        - output: :math:`(M,)` for the ``M`` pixels in ``mask``
+
+    Example:
+        >>> n = torch.zeros(1, 3, 1, 2); n[:, 2] = -1.0
+        >>> m = n.clone(); m[0, :, 0, 1] = torch.tensor([1.0, 0.0, 0.0])
+        >>> normal_angles(m, n, torch.ones(1, 1, 1, 2, dtype=torch.bool))
+        tensor([ 0., 90.])
+    """
+    dims = check_shape(predicted, ["B", 3, "H", "W"], "predicted")
+    check_shape(target, ["B", 3, "H", "W"], "target", dims)
+    check_shape(mask, ["B", 1, "H", "W"], "mask", dims)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask: expected a bool tensor, got dtype {mask.dtype}")
+    cos = (torch.nn.functional.normalize(predicted, dim=1) * torch.nn.functional.normalize(target, dim=1)).sum(1)
+    return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))[mask[:, 0]]
+
+
+@torch.no_grad()
+def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
+                     max_samples: int | None = None, threshold: float = 0.1, workers: int = 0,
+                     device: str | torch.device | None = None) -> NetworkMetrics:
+    """Score ``net`` on a dataset of :class:`~facenormals.data.SyntheticHeadDataset` items.
+
+    Args:
+        net: the network (put in ``eval()`` mode for the call).
+        dataset: items with ``image``, ``normals``, ``foreground``, ``landmarks`` and
+            ``landmark_visible``.
+        batch_size: images per forward pass.
+        max_samples: score only the first ``max_samples`` items.
+        threshold: landmark detection threshold of :func:`~facenormals.data.landmarks_from_maps`.
+        workers: DataLoader workers.
+        device: where to run (default: the network's device).
+    """
+    if max_samples is not None:
+        dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
+    if len(dataset) == 0:
+        raise ValueError("dataset: expected at least one sample, got none")
+    device = next(net.parameters()).device if device is None else torch.device(device)
+    was_training = net.training
+    net.eval()
+    angles, errors = [], []
+    agree = total = 0
+    inter = union = 0
+    for batch in DataLoader(dataset, batch_size=batch_size, num_workers=workers):
+        out = net(batch["image"].to(device))
+        fg = batch["foreground"].to(device)
+        angles.append(normal_angles(out.normals, batch["normals"].to(device), fg).cpu())
+        peaks, _ = landmarks_from_maps(out.landmarks.float(), threshold=-math.inf)
+        _, found = landmarks_from_maps(out.landmarks.float(), threshold=threshold)
+        visible = batch["landmark_visible"].to(device)
+        err = (peaks - batch["landmarks"].to(device)).norm(dim=-1)
+        errors.append(err[visible].cpu())
+        agree += int((found == visible).sum())
+        total += visible.numel()
+        pred_fg = out.foreground()
+        inter += int((pred_fg & fg).sum())
+        union += int((pred_fg | fg).sum())
+    net.train(was_training)
+    angles_t, errors_t = torch.cat(angles), torch.cat(errors)
+
+    def stat(x: Tensor, fn) -> float:
+        return float(fn(x)) if x.numel() else float("nan")
+
+    return NetworkMetrics(
+        samples=len(dataset),
+        normal_mean_deg=stat(angles_t, torch.mean),
+        normal_median_deg=stat(angles_t, torch.median),
+        landmark_mean_px=stat(errors_t, torch.mean),
+        landmark_median_px=stat(errors_t, torch.median),
+        visibility_accuracy=agree / max(total, 1),
+        foreground_iou=inter / max(union, 1),
+    )

@@ -1,0 +1,30 @@
+import math
+
+import pytest
+
+from facenormals.training import TrainConfig
+
+
+def test_learning_rate_schedule_warmup_then_cosine():
+    c = TrainConfig(data="d", out="o", steps=110, lr=1.0, warmup_steps=10, min_lr_ratio=0.1)
+    assert c.learning_rate(0) == pytest.approx(0.1)
+    assert c.learning_rate(9) == pytest.approx(1.0)
+    assert c.learning_rate(10) == pytest.approx(1.0)
+    assert c.learning_rate(60) == pytest.approx(0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 0.5)))
+    assert c.learning_rate(110) == pytest.approx(0.1)
+    rates = [c.learning_rate(s) for s in range(10, 111)]
+    assert all(a >= b for a, b in zip(rates, rates[1:]))
+
+
+@pytest.mark.parametrize("field,value", [("steps", 0), ("batch_size", -1), ("lr", 0.0), ("ema_decay", 1.0),
+                                         ("precision", "fp8"), ("workers", -1), ("max_minutes", 0.0)])
+def test_bad_values_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        TrainConfig(data="d", out="o", **{field: value})
+
+
+def test_round_trip_and_unknown_fields():
+    c = TrainConfig(data="d", out="o", steps=7)
+    assert TrainConfig.from_dict(c.to_dict()) == c
+    with pytest.raises(ValueError, match="unknown"):
+        TrainConfig.from_dict({**c.to_dict(), "bogus": 1})

@@ -1,0 +1,101 @@
+import csv
+
+import pytest
+import torch
+
+from facenormals.nn import load_weights
+from facenormals.training import TrainConfig, export_weights, load_checkpoint, train
+from facenormals.training.loop import _EpochSampler
+
+from .conftest import TinyHeads
+
+
+def _config(tmp_path, **changes):
+    values = dict(data="unused", out=str(tmp_path / "run"), steps=8, batch_size=4, lr=3e-3, warmup_steps=2,
+                  workers=0, device="cpu", precision="fp32", log_every=2, checkpoint_every=4, eval_every=4,
+                  eval_samples=8, base_channels=4, depth=2, seed=3)
+    values.update(changes)
+    return TrainConfig(**values)
+
+
+def test_training_logs_checkpoints_and_lowers_the_loss(tmp_path):
+    data = TinyHeads(48)
+    summary = train(_config(tmp_path, steps=30, log_every=5), data, holdout=TinyHeads(8, seed=1), progress=False)
+    assert summary.finished and summary.step == 30 and summary.samples_seen == 120
+    rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
+    assert [int(r["step"]) for r in rows] == [5, 10, 15, 20, 25, 30]
+    assert float(rows[-1]["loss"]) < 0.7 * float(rows[0]["loss"])
+    evals = list(csv.DictReader((tmp_path / "run" / "eval.csv").open()))
+    assert int(evals[-1]["step"]) == 30 and int(evals[-1]["samples"]) == 8  # final: the whole holdout
+    state = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert state["step"] == 30 and state["config"]["steps"] == 30
+
+
+def test_resume_is_bitwise_identical_for_the_same_config(tmp_path):
+    data = TinyHeads(20)
+    straight = train(_config(tmp_path / "a"), data, progress=False)  # 5 batches per epoch: crosses an epoch
+    config = _config(tmp_path / "b")
+    # interrupt after 3 steps through the SIGTERM path, then resume from last.pt
+    import signal
+
+    calls = {"n": 0}
+    original = torch.optim.AdamW.step
+
+    def step_then_interrupt(self, *args, **kwargs):
+        out = original(self, *args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 3:
+            signal.raise_signal(signal.SIGTERM)
+        return out
+
+    torch.optim.AdamW.step = step_then_interrupt
+    try:
+        first = train(config, data, progress=False)
+    finally:
+        torch.optim.AdamW.step = original
+    assert first.stopped_by == "signal" and first.step == 3 and not first.finished
+    resumed = train(config, data, progress=False)
+    assert resumed.step == 8
+    a, b = load_checkpoint(straight.checkpoint), load_checkpoint(resumed.checkpoint)
+    for key in a["model"]:
+        torch.testing.assert_close(b["model"][key], a["model"][key], rtol=0, atol=0)
+        torch.testing.assert_close(b["ema"][key], a["ema"][key], rtol=0, atol=0)
+
+
+def test_resume_refuses_another_architecture(tmp_path):
+    data = TinyHeads(8)
+    train(_config(tmp_path, steps=2), data, progress=False)
+    with pytest.raises(ValueError, match="base_channels"):
+        train(_config(tmp_path, steps=4, base_channels=8), data, progress=False)
+
+
+def test_export_weights_round_trip(tmp_path):
+    summary = train(_config(tmp_path, steps=2), TinyHeads(8), progress=False)
+    path = export_weights(summary.checkpoint, tmp_path / "w.pt", metadata={"note": "test"})
+    net = load_weights(path)
+    ema = load_checkpoint(summary.checkpoint)["ema"]
+    for key, value in net.state_dict().items():
+        torch.testing.assert_close(value, ema[key].half().float())
+    assert net.metadata["note"] == "test" and net.metadata["step"] == 2
+
+
+def test_bad_checkpoint_and_weight_files_name_the_file(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_checkpoint(bad)
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_weights(bad)
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        load_weights(tmp_path / "missing.pt")
+
+
+def test_epoch_sampler_is_a_deterministic_rank_partition_that_resumes():
+    size, world = 10, 2
+    streams = [_EpochSampler(size, seed=5, rank=r, world_size=world) for r in range(world)]
+    firsts = [[i for _, i in zip(range(5), iter(s))] for s in streams]
+    assert sorted(firsts[0] + firsts[1]) == list(range(10))  # one epoch: disjoint and complete
+    full = [i for _, i in zip(range(12), iter(_EpochSampler(size, 5, 0, world)))]
+    resumed = [i for _, i in zip(range(5), iter(_EpochSampler(size, 5, 0, world, start=7)))]
+    assert resumed == full[7:12]
+    assert full[:5] != full[5:10]  # a new permutation per epoch
