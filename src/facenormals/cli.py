@@ -134,6 +134,47 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from facenormals.training import TrainConfig, export_weights, train
+
+    fields = TrainConfig.__dataclass_fields__
+    values = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
+    config = TrainConfig(**values)
+    summary = train(config, progress=not args.quiet)
+    print(f"{summary.checkpoint}: step {summary.step}/{config.steps}, {summary.samples_seen} samples seen "
+          f"(stopped by {summary.stopped_by}, {summary.seconds / 60:.1f} min)")
+    if summary.metrics is not None:
+        print(f"held out: {summary.metrics}")
+    if args.export and int(__import__("os").environ.get("RANK", "0")) == 0:
+        path = export_weights(summary.checkpoint, args.export)
+        print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
+    return 0
+
+
+def _parse_box(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError(f"expected X,Y,W,H in pixels, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from facenormals.reconstruct import reconstruct_photos
+
+    boxes = list(args.box or [])
+    if boxes and len(boxes) != len(args.images):
+        raise ValueError(f"--box: give one per image ({len(args.images)}) or none, got {len(boxes)}")
+    rec = reconstruct_photos(args.images, args.out, model=args.model, weights=args.weights, device=args.device,
+                             boxes=boxes or None)
+    t = rec.timings
+    print(f"done in {t['total']:.2f} s (network {t['network'] * 1e3:.0f} ms, fit {t['fit'] * 1e3:.0f} ms, "
+          f"loading {t['load']:.2f} s)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="facenormals", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -176,6 +217,42 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--world-size", type=int, default=None, help="number of ranks (default: $WORLD_SIZE)")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(func=_cmd_synth)
+
+    rec = sub.add_parser("reconstruct", help="reconstruct a 3D head from one or more photos of a person",
+                         description="Detect and crop the face, predict normals and landmarks, pre-align and fit "
+                                     "the morphable model (several photos: one shared shape, a pose per photo). "
+                                     "Writes head.ply, head.obj, params.json and per photo an overlay and N/Z pictures.")
+    rec.add_argument("images", nargs="+", metavar="IMAGE", help="photos (any size, colour or grey; EXIF orientation honoured)")
+    rec.add_argument("-o", "--out", required=True, metavar="OUT_DIR", help="output folder")
+    rec.add_argument("--model", default="auto", help="ict, builtin, auto (ICT if installed, default) or a model path")
+    rec.add_argument("--weights", default=None, help="network weights (default: the shipped ones)")
+    rec.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    rec.add_argument("--box", action="append", type=_parse_box, metavar="X,Y,W,H",
+                     help="face box per image, in image order, instead of detecting it (e.g. for profile views)")
+    rec.set_defaults(func=_cmd_reconstruct)
+
+    train = sub.add_parser("train", help="train the normal + landmark network on synthetic data (resumes from OUT/last.pt)",
+                           description="Single process: `facenormals train ...`; several GPUs or machines: "
+                                       "`torchrun --nproc-per-node N -m facenormals.cli train ...` (DDP).")
+    train.add_argument("--data", required=True, help="training dataset folder (facenormals synth)")
+    train.add_argument("--out", required=True, help="run folder: last.pt, log.csv, eval.csv")
+    train.add_argument("--holdout", default=None, help="held-out dataset folder scored during training")
+    for name, kind, text in (
+        ("steps", int, "optimiser steps of the whole run"), ("batch-size", int, "images per step and process"),
+        ("lr", float, "peak AdamW learning rate"), ("warmup-steps", int, None), ("weight-decay", float, None),
+        ("ema-decay", float, "decay of the exported weight average"),
+        ("landmark-weight", float, "weight of L_Z"), ("foreground-weight", float, None),
+        ("sigma", float, "landmark Gaussian sigma in pixels"), ("workers", int, "DataLoader workers per process"),
+        ("precision", str, "auto, bf16 or fp32"), ("threads", int, "CPU threads"), ("seed", int, None),
+        ("log-every", int, None), ("checkpoint-every", int, None), ("eval-every", int, None),
+        ("eval-samples", int, None), ("max-minutes", float, "stop with a checkpoint after this wall time"),
+        ("base-channels", int, None), ("depth", int, None),
+    ):
+        train.add_argument(f"--{name}", type=kind, default=None, help=text)
+    train.add_argument("--device", default=None, help="auto (default), cpu, cuda or cuda:N")
+    train.add_argument("--export", default=None, metavar="WEIGHTS", help="also export the averaged weights (fp16)")
+    train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.set_defaults(func=_cmd_train)
     return parser
 
 

@@ -1,0 +1,35 @@
+"""From photos to a head: reading, face detection and cropping, the network, the fit and the output files.
+
+``facenormals reconstruct photo.jpg -o out`` runs :func:`reconstruct_photos`; see
+``docs/tutorials/reconstruct.md``.
+"""
+
+from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
+from facenormals.reconstruct.images import ImageReadError, read_image
+from facenormals.reconstruct.photos import prepare_view, reconstruct_photos
+from facenormals.reconstruct.pipeline import (
+    NetworkMaps,
+    PhotoView,
+    Reconstruction,
+    predict_maps,
+    reconstruct_views,
+    write_reconstruction,
+)
+
+__all__ = [
+    "FaceBox",
+    "ImageReadError",
+    "NetworkMaps",
+    "NoFaceError",
+    "PhotoView",
+    "Reconstruction",
+    "crop_square",
+    "detect_faces",
+    "head_crop_box",
+    "predict_maps",
+    "prepare_view",
+    "read_image",
+    "reconstruct_photos",
+    "reconstruct_views",
+    "write_reconstruction",
+]

@@ -1,0 +1,148 @@
+r"""Offline face detection and the square head crop the network expects.
+
+The detector is scikit-image's LBP frontal-face cascade (``skimage.data`` ships the trained
+OpenCV cascade file). Why this one: scikit-image is already a dependency, the cascade is in its
+wheel (OpenCV 5 wheels dropped their cascade files), it needs no network access, no model download
+and no extra package (mediapipe pins its own NumPy and protobuf and has no wheels for every
+platform we support). Its limit: it finds roughly frontal faces (up to ~30-40° of yaw). For
+profile photos pass the face box yourself (``--box`` on the command line).
+
+Raw cascade hits are grouped: hits whose boxes overlap (IoU ≥ 0.3) form one candidate, scored by
+its number of hits, and the candidate with the most hits (then the largest) wins; single stray
+hits are false positives far more often than faces.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+__all__ = ["FaceBox", "NoFaceError", "crop_square", "detect_faces", "head_crop_box"]
+
+
+class NoFaceError(ValueError):
+    """No face was found in an image."""
+
+
+@dataclass(frozen=True)
+class FaceBox:
+    """An axis-aligned box in image pixels: corner ``(x, y)``, ``width``, ``height``; ``hits`` cascade hits."""
+
+    x: float
+    y: float
+    width: float
+    height: float
+    hits: int = 1
+
+    @property
+    def center(self) -> tuple[float, float]:
+        return self.x + self.width / 2, self.y + self.height / 2
+
+    def iou(self, other: "FaceBox") -> float:
+        ix = max(0.0, min(self.x + self.width, other.x + other.width) - max(self.x, other.x))
+        iy = max(0.0, min(self.y + self.height, other.y + other.height) - max(self.y, other.y))
+        inter = ix * iy
+        return inter / (self.width * self.height + other.width * other.height - inter)
+
+
+@lru_cache(maxsize=1)
+def _cascade():
+    import skimage.data
+    import skimage.feature
+
+    return skimage.feature.Cascade(skimage.data.lbp_frontal_face_cascade_filename())
+
+
+def _group(hits: list[FaceBox], min_iou: float) -> list[FaceBox]:
+    groups: list[list[FaceBox]] = []
+    for box in sorted(hits, key=lambda b: -b.width):
+        for group in groups:
+            if box.iou(group[0]) >= min_iou:
+                group.append(box)
+                break
+        else:
+            groups.append([box])
+    merged = []
+    for group in groups:
+        arr = np.array([[b.x, b.y, b.width, b.height] for b in group])
+        x, y, w, h = arr.mean(0)
+        merged.append(FaceBox(float(x), float(y), float(w), float(h), hits=len(group)))
+    return sorted(merged, key=lambda b: (-b.hits, -b.width))
+
+
+def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08, min_hits: int = 1) -> list[FaceBox]:
+    """Find faces with the LBP cascade; the best candidate comes first.
+
+    The image is searched at most ``max_side`` pixels on its longer side (boxes are returned in the
+    original pixels).
+
+    Args:
+        image: RGB or grey ``uint8`` image ``(H, W, 3)`` / ``(H, W)``.
+        max_side: longer side of the searched copy.
+        min_face: smallest face side searched, as a fraction of the shorter image side.
+        min_hits: drop candidates with fewer overlapping cascade hits.
+
+    Returns:
+        Grouped detections, most hits (then largest) first; empty if none.
+    """
+    import cv2
+
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise ValueError(f"image: expected a uint8 array (H, W[, 3]), got "
+                         f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}")
+    grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
+    scale = min(1.0, max_side / max(grey.shape))
+    if scale < 1.0:
+        grey = cv2.resize(grey, (round(grey.shape[1] * scale), round(grey.shape[0] * scale)),
+                          interpolation=cv2.INTER_AREA)
+    side = min(grey.shape)
+    smallest = max(24, int(min_face * side))
+    raw = _cascade().detect_multi_scale(img=grey, scale_factor=1.15, step_ratio=1,
+                                        min_size=(smallest, smallest), max_size=(side, side))
+    hits = [FaceBox(d["c"] / scale, d["r"] / scale, d["width"] / scale, d["height"] / scale) for d in raw]
+    return [b for b in _group(hits, 0.3) if b.hits >= min_hits]
+
+
+def head_crop_box(face: FaceBox, scale: float = 1.9, shift: float = -0.12) -> tuple[float, float, float]:
+    """The square crop around a detected face that frames the head as in the training data.
+
+    The cascade's box spans roughly brows to mouth; the crop is ``scale`` times its size, centred
+    ``shift`` box heights below its centre (negative: up, towards the cranium).
+
+    Returns:
+        ``(x0, y0, side)``: the crop's top-left corner and side, image pixels (may leave the image).
+    """
+    cx, cy = face.center
+    side = scale * max(face.width, face.height)
+    cy += shift * face.height
+    return cx - side / 2, cy - side / 2, side
+
+
+def crop_square(image: np.ndarray, box: tuple[float, float, float], size: int = 128) -> np.ndarray:
+    """Resample the square ``box = (x0, y0, side)`` of ``image`` to ``size × size`` (edges replicated).
+
+    Crop pixel ``(u, v)`` (centre convention of ``docs/conventions.md``) shows image point
+    ``(x0 + (u + 0.5)·s − 0.5, y0 + (v + 0.5)·s − 0.5)`` with ``s = side / size``.
+
+    Example:
+        >>> img = np.arange(16, dtype=np.uint8).reshape(4, 4)[..., None].repeat(3, -1)
+        >>> crop_square(img, (0.0, 0.0, 4.0), size=4)[..., 0].tolist() == img[..., 0].tolist()
+        True
+    """
+    import cv2
+
+    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image: expected an array (H, W, 3), got shape {getattr(image, 'shape', None)}")
+    x0, y0, side = (float(v) for v in box)
+    if not side > 0:
+        raise ValueError(f"box: expected a positive side, got {side}")
+    s = side / size
+    # crop pixel u -> image x = s*u + (x0 + 0.5*s - 0.5); warpAffine maps destination to source.
+    matrix = np.array([[s, 0.0, x0 + 0.5 * s - 0.5], [0.0, s, y0 + 0.5 * s - 0.5]])
+    if s > 1.5:  # downsampling: pre-blur against aliasing (INTER_AREA cannot do sub-pixel offsets)
+        sigma = 0.5 * np.sqrt(s * s - 1.0)
+        image = cv2.GaussianBlur(image, (0, 0), sigma)
+    return cv2.warpAffine(image, matrix, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)

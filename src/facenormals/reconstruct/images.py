@@ -1,0 +1,46 @@
+"""Reading photos for reconstruction: any size, colour or grey, EXIF orientation applied."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ImageReadError", "read_image"]
+
+
+class ImageReadError(ValueError):
+    """A file that is missing, unreadable or not an image; the message names the file."""
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read a photo as RGB ``uint8`` ``(H, W, 3)``, rotated as its EXIF orientation says.
+
+    Grey images are replicated to three channels, an alpha channel is dropped and 16-bit images
+    are scaled to 8 bits (OpenCV's ``IMREAD_COLOR``, which also applies the EXIF orientation tag).
+
+    Raises:
+        ImageReadError: naming ``path`` if it does not exist, is a folder or is not a decodable image.
+
+    Example:
+        >>> import cv2, tempfile, os
+        >>> path = os.path.join(tempfile.mkdtemp(), "grey.png")
+        >>> _ = cv2.imwrite(path, np.full((4, 6), 200, np.uint8))
+        >>> read_image(path).shape
+        (4, 6, 3)
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.exists():
+        raise ImageReadError(f"{path}: no such file")
+    if not path.is_file():
+        raise ImageReadError(f"{path}: not a file")
+    try:
+        data = np.fromfile(path, dtype=np.uint8)  # also works for non-ASCII paths, unlike cv2.imread
+    except OSError as error:
+        raise ImageReadError(f"{path}: cannot be read ({error.strerror or error})") from None
+    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if image is None:
+        raise ImageReadError(f"{path}: not an image (OpenCV cannot decode it)")
+    return np.ascontiguousarray(image[:, :, ::-1])

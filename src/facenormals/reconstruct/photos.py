@@ -1,0 +1,106 @@
+"""``reconstruct_photos``: the whole product path from image files to the output folder."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from facenormals.reconstruct.detect import NoFaceError, crop_square, detect_faces, head_crop_box
+from facenormals.reconstruct.images import read_image
+from facenormals.reconstruct.pipeline import PhotoView, Reconstruction, reconstruct_views, write_reconstruction
+
+__all__ = ["prepare_view", "reconstruct_photos"]
+
+
+def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None = None, size: int = 128) -> PhotoView:
+    """Read a photo, find the face (or use ``box = (x, y, w, h)``) and crop the head to ``size``².
+
+    Raises:
+        ImageReadError: the file is missing or not an image.
+        NoFaceError: no face was detected; the message names the file.
+    """
+    from facenormals.reconstruct.detect import FaceBox
+
+    image = read_image(path)
+    if box is None:
+        faces = detect_faces(image)
+        if not faces:
+            raise NoFaceError(f"{path}: no face found (the detector finds roughly frontal faces; "
+                              "for a profile view pass its face box with --box X,Y,W,H)")
+        face = faces[0]
+    else:
+        x, y, w, h = (float(v) for v in box)
+        if not (w > 0 and h > 0):
+            raise ValueError(f"box: expected a positive width and height, got {box}")
+        face = FaceBox(x, y, w, h)
+    crop_box = head_crop_box(face)
+    return PhotoView(crop=crop_square(image, crop_box, size), box=crop_box, image_size=image.shape[:2], path=str(path))
+
+
+def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None, model="auto", weights=None,
+                       device: str = "cpu", boxes: Sequence | None = None,
+                       log: Callable[[str], None] = print, **fit_options) -> Reconstruction:
+    """Reconstruct one head from one or more photos of a person and write the results.
+
+    All photos are read and their faces found before anything is computed or written, so a bad
+    file stops the run early with a message naming it and leaves ``out_dir`` untouched.
+
+    Args:
+        paths: image files; several give a multi-view fit with one shared shape.
+        out_dir: output folder (``None``: write nothing).
+        model: a :class:`~facenormals.models.MorphableModel` or a spec for
+            :func:`~facenormals.models.load_model` (``"auto"``: ICT-FaceKit when installed, else
+            the built-in head).
+        weights: network weight file (default: the shipped weights).
+        device: where the network runs.
+        boxes: optional face boxes ``(x, y, w, h)`` per photo (``None`` entries: detect).
+        log: progress messages.
+        **fit_options: passed to :func:`~facenormals.fitting.fit_head`.
+    """
+    from facenormals.models import MorphableModel, load_model
+    from facenormals.nn import load_weights
+
+    if not paths:
+        raise ValueError("paths: expected at least one image, got none")
+    boxes = list(boxes) if boxes is not None else [None] * len(paths)
+    if len(boxes) != len(paths):
+        raise ValueError(f"boxes: expected one per image ({len(paths)}), got {len(boxes)}")
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    views = []
+    for i, (path, box) in enumerate(zip(paths, boxes)):
+        view = prepare_view(path, box)
+        views.append(view)
+        log(f"[{i + 1}/{len(paths)}] {path}: {view.image_size[1]}x{view.image_size[0]}, head crop "
+            f"{view.box[2]:.0f} px at ({view.box[0]:.0f}, {view.box[1]:.0f})")
+    timings["read_and_detect"] = time.perf_counter() - start
+
+    t = time.perf_counter()
+    if not isinstance(model, MorphableModel):
+        spec = model
+        model = load_model(spec)
+        if spec == "auto" and model.name == "builtin":
+            log("ICT-FaceKit is not installed: using the built-in head "
+                "(`facenormals models fetch ict` gets the full model)")
+    model = model.to(torch.float32)
+    net = load_weights(weights, device=device)
+    timings["load"] = time.perf_counter() - t
+    log(f"model {model.name} ({model.num_vertices} vertices, {model.num_shape} shape components); "
+        f"network on {device}")
+
+    t = time.perf_counter()
+    crops = torch.from_numpy(np.stack([v.crop for v in views])).permute(0, 3, 1, 2).float() / 255.0
+    maps, fit = reconstruct_views(crops, net, model, log=log, **fit_options)
+    timings["network"] = maps.seconds
+    timings["fit"] = float(fit.timings.get("total_s", time.perf_counter() - t - maps.seconds))
+    timings["reconstruct"] = time.perf_counter() - t
+    rec = Reconstruction(views=views, maps=maps, fit=fit, model=model, timings=timings)
+    if out_dir is not None:
+        written = write_reconstruction(rec, out_dir)
+        log(f"wrote {len(written)} files to {out_dir}: " + ", ".join(p.name for p in written))
+    timings["total"] = time.perf_counter() - start
+    return rec

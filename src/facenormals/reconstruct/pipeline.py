@@ -1,0 +1,240 @@
+r"""The product recipe: photos → network maps → landmark pre-alignment → multi-view fit → files.
+
+Every step is a public op: :func:`~facenormals.reconstruct.detect_faces` and
+:func:`~facenormals.reconstruct.crop_square` frame the head, the network
+(:func:`~facenormals.nn.load_weights`) predicts the normal map N and landmark maps Z,
+:func:`~facenormals.data.landmarks_from_maps` decodes Z into sub-pixel landmarks with
+visibility, and :func:`~facenormals.fitting.fit_head` pre-aligns and fits the morphable model,
+one shared shape over all views.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from facenormals.data.landmark_maps import landmarks_from_maps
+from facenormals.fitting import FitResult, fit_head
+from facenormals.geometry import euler_to_rotation_matrix, project_points
+from facenormals.models import LANDMARK_NAMES, MorphableModel
+from facenormals.nn.unet import NormalLandmarkUNet
+
+__all__ = ["NetworkMaps", "PhotoView", "Reconstruction", "predict_maps", "reconstruct_views", "write_reconstruction"]
+
+#: Focal length prior in pixels of the 128-pixel crop (the middle of the training range, 120–800 px).
+DEFAULT_FOCAL = 300.0
+
+
+@dataclass
+class PhotoView:
+    """One input photo and the square crop fed to the network.
+
+    Attributes:
+        crop: ``(S, S, 3)`` uint8 RGB network input.
+        box: ``(x0, y0, side)`` of the crop in the photo's pixels (see :func:`crop_square`).
+        image_size: ``(H, W)`` of the photo (after EXIF rotation).
+        path: where the photo came from, if a file.
+    """
+
+    crop: np.ndarray
+    box: tuple[float, float, float] = (0.0, 0.0, 128.0)
+    image_size: tuple[int, int] = (128, 128)
+    path: str | None = None
+
+    def to_image(self, pixels: Tensor) -> Tensor:
+        """Crop pixels ``(..., 2)`` to photo pixels."""
+        x0, y0, side = self.box
+        s = side / self.crop.shape[0]
+        offset = torch.tensor([x0 + 0.5 * s - 0.5, y0 + 0.5 * s - 0.5], dtype=pixels.dtype, device=pixels.device)
+        return pixels * s + offset
+
+
+@dataclass
+class NetworkMaps:
+    """The network's output for ``V`` views.
+
+    Attributes:
+        normal_maps: ``(V, 3, S, S)`` unit camera-frame normals, zero on predicted background.
+        landmark_maps: ``(V, L, S, S)``.
+        landmarks: ``(V, L, 2)`` sub-pixel landmarks, NaN where not detected.
+        found: ``(V, L)`` detection mask.
+        seconds: wall time of the forward pass.
+    """
+
+    normal_maps: Tensor
+    landmark_maps: Tensor
+    landmarks: Tensor
+    found: Tensor
+    seconds: float = 0.0
+
+
+@torch.no_grad()
+def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float = 0.1) -> NetworkMaps:
+    """Run the network on ``(V, 3, S, S)`` crops in ``[0, 1]`` and decode its landmark maps.
+
+    Example:
+        >>> net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+        >>> maps = predict_maps(net, torch.rand(2, 3, 16, 16))
+        >>> maps.normal_maps.shape, maps.landmarks.shape
+        (torch.Size([2, 3, 16, 16]), torch.Size([2, 24, 2]))
+    """
+    start = time.perf_counter()
+    device = next(net.parameters()).device
+    out = net(crops.to(device=device, dtype=next(net.parameters()).dtype))
+    points, found = landmarks_from_maps(out.landmarks, threshold=threshold)
+    return NetworkMaps(out.normal_map().cpu(), out.landmarks.cpu(), points.cpu(), found.cpu(),
+                       seconds=time.perf_counter() - start)
+
+
+def _landmark_channels(model: MorphableModel) -> list[int]:
+    missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
+    if missing:
+        raise ValueError(f"model: landmarks {missing} of model {model.name!r} are not among the network's "
+                         f"{len(LANDMARK_NAMES)} landmarks {LANDMARK_NAMES}")
+    return [LANDMARK_NAMES.index(name) for name in model.landmark_names]
+
+
+def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableModel,
+                      focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
+                      **fit_options) -> tuple[NetworkMaps, FitResult]:
+    """Predict the maps of ``V`` crops of one person and fit one shared head to all of them.
+
+    Args:
+        crops: ``(V, 3, S, S)`` network inputs in ``[0, 1]``.
+        net: the trained network.
+        model: the morphable model (its landmarks are matched to the network's by name).
+        focal: focal length prior in crop pixels (the fit refines it per view).
+        log: progress messages go here.
+        **fit_options: passed to :func:`~facenormals.fitting.fit_head`.
+
+    Raises:
+        ValueError: naming the view when it has fewer than 4 detected landmarks.
+    """
+    log = log or (lambda message: None)
+    maps = predict_maps(net, crops)
+    V, _, S, _ = crops.shape
+    log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
+        f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
+    channels = _landmark_channels(model)
+    landmarks = maps.landmarks[:, channels].to(model.mean.dtype)
+    intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=model.mean.dtype).expand(V, 3)
+    start = time.perf_counter()
+    fit = fit_head(maps.normal_maps.to(model.mean.dtype), landmarks, model, intrinsics=intrinsics, **fit_options)
+    log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
+    return maps, fit
+
+
+@dataclass
+class Reconstruction:
+    """Everything :func:`write_reconstruction` writes."""
+
+    views: list[PhotoView]
+    maps: NetworkMaps
+    fit: FitResult
+    model: MorphableModel
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _write_atomic(path: Path, write: Callable[[Path], object]) -> Path:
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> Path:
+    import cv2
+
+    def write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+            raise OSError(f"{path}: cannot write the PNG")
+
+    return _write_atomic(path, write)
+
+
+def landmark_map_image(crop: np.ndarray, landmark_maps: Tensor, scale: int = 4) -> np.ndarray:
+    """Landmark maps Z over a dimmed crop: the maximum over channels in a heat colour, ``(S·scale, S·scale, 3)``."""
+    import cv2
+
+    heat = landmark_maps.detach().float().clamp(0, 1).amax(0).numpy()
+    colour = cv2.applyColorMap((heat * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
+    alpha = heat[..., None]
+    out = (crop.astype(np.float32) * 0.35 * (1 - alpha) + colour.astype(np.float32) * alpha).astype(np.uint8)
+    return cv2.resize(out, (out.shape[1] * scale, out.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+
+
+def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]:
+    """Write ``head.ply``, ``head.obj``, ``params.json`` and per view an overlay, N and Z pictures.
+
+    Every file is written to a temporary name and renamed, so an interrupted run never leaves a
+    half-written file and never destroys an earlier complete one.
+    """
+    from facenormals.mesh import save_mesh
+    from facenormals.render import draw_alignment, normal_map_to_image
+
+    import cv2
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fit, maps = rec.fit, rec.maps
+    written = [
+        _write_atomic(out / "head.ply", lambda p: save_mesh(p, fit.vertices[0], fit.faces)),
+        _write_atomic(out / "head.obj", lambda p: save_mesh(p, fit.vertices[0], fit.faces)),
+    ]
+    R = euler_to_rotation_matrix(fit.angles[0])
+    pixels, _ = project_points(fit.vertices.expand(R.shape[0], -1, -1), R, fit.translation[0], fit.intrinsics[0])
+    views_json = []
+    for v, view in enumerate(rec.views):
+        stem = f"view{v}"
+        overlay = draw_alignment(view.crop, pixels[v], maps.landmarks[v], visible=fit.visible[0, v])
+        normals = cv2.resize(normal_map_to_image(maps.normal_maps[v]), overlay.shape[1::-1],
+                             interpolation=cv2.INTER_NEAREST)
+        written += [
+            _write_png(out / f"{stem}_overlay.png", overlay),
+            _write_png(out / f"{stem}_normals.png", normals),
+            _write_png(out / f"{stem}_landmarks.png", landmark_map_image(view.crop, maps.landmark_maps[v])),
+        ]
+        f, u0, v0 = fit.intrinsics[0, v].tolist()
+        x0, y0, side = view.box
+        s = side / view.crop.shape[0]
+        views_json.append({
+            "image": view.path,
+            "image_size": list(view.image_size),
+            "crop_box_xy_side": [x0, y0, side],
+            "angles_deg": {"roll": math.degrees(fit.angles[0, v, 0]), "pitch": math.degrees(fit.angles[0, v, 1]),
+                           "yaw": math.degrees(fit.angles[0, v, 2])},
+            "rotation": fit.rotation[0, v].tolist(),
+            "translation_mm": fit.translation[0, v].tolist(),
+            "intrinsics_crop_px": {"f": f, "u0": u0, "v0": v0},
+            "intrinsics_image_px": {"f": f * s, "u0": x0 + (u0 + 0.5) * s - 0.5, "v0": y0 + (v0 + 0.5) * s - 0.5},
+            "landmarks_crop_px": {name: (None if not bool(maps.found[v, i]) else maps.landmarks[v, i].tolist())
+                                  for i, name in enumerate(LANDMARK_NAMES)},
+            "landmark_rms_px": float(fit.landmark_rms_px[0, v]),
+        })
+    params = {
+        "format": "facenormals-reconstruction", "version": 1,
+        "model": rec.model.name, "units": "mm",
+        "convention": "X_camera = R (X_model + t); pixel = (f X/Z + u0, f Y/Z + v0); see docs/conventions.md",
+        "shape_coeffs": fit.shape_coeffs[0].tolist(),
+        "expression_coeffs": None if fit.expression_coeffs is None else fit.expression_coeffs[0].tolist(),
+        "views": views_json,
+        "energies": {k: float(e[0]) for k, e in fit.energies.items()},
+        "iterations": int(fit.iterations[0]),
+        "status": fit.reasons[0] if fit.reasons else None,
+        "timings_s": rec.timings,
+    }
+    written.append(_write_atomic(out / "params.json", lambda p: p.write_text(json.dumps(params, indent=2))))
+    return written

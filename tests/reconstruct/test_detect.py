@@ -1,0 +1,65 @@
+import numpy as np
+import pytest
+
+from facenormals.reconstruct import FaceBox, crop_square, detect_faces, head_crop_box
+
+
+def test_finds_the_astronaut_face():
+    skdata = pytest.importorskip("skimage.data")
+    faces = detect_faces(skdata.astronaut())
+    assert faces, "no face found"
+    cx, cy = faces[0].center
+    # Eileen Collins' face: between the eyes and the mouth, roughly x 180-270, y 70-165
+    assert 205 < cx < 240 and 100 < cy < 135 and 70 < faces[0].width < 130
+
+
+def test_no_face_in_a_flat_image_or_a_gradient():
+    assert detect_faces(np.full((200, 300, 3), 128, np.uint8)) == []
+    ramp = np.tile(np.linspace(0, 255, 256).astype(np.uint8), (256, 1))
+    assert detect_faces(ramp) == []
+
+
+def test_bad_image_argument():
+    with pytest.raises(ValueError, match="image"):
+        detect_faces(np.zeros((10, 10, 3), np.float32))
+
+
+def test_grouping_prefers_many_overlapping_hits():
+    from facenormals.reconstruct.detect import _group
+
+    hits = [FaceBox(100, 100, 50, 50), FaceBox(104, 98, 52, 52), FaceBox(98, 103, 48, 48), FaceBox(10, 10, 80, 80)]
+    groups = _group(hits, 0.3)
+    assert groups[0].hits == 3 and abs(groups[0].center[0] - 125.3) < 1.0
+    assert groups[1].hits == 1 and groups[1].width == 80
+
+
+def test_head_crop_box_geometry():
+    x0, y0, side = head_crop_box(FaceBox(100, 50, 40, 40), scale=2.0, shift=-0.25)
+    assert side == 80 and x0 == 80 and y0 == 70 - 10 - 40
+
+
+def test_crop_square_matches_a_naive_bilinear_loop():
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 255, (30, 40, 3)).astype(np.uint8)
+    box, size = (5.3, 3.7, 12.0), 16  # upsampling: no pre-blur
+    out = crop_square(img, box, size)
+    s = box[2] / size
+    for v in range(0, size, 5):
+        for u in range(0, size, 5):
+            x, y = box[0] + (u + 0.5) * s - 0.5, box[1] + (v + 0.5) * s - 0.5
+            x0, y0 = int(np.floor(x)), int(np.floor(y))
+            ax, ay = x - x0, y - y0
+            ref = ((1 - ax) * (1 - ay) * img[y0, x0] + ax * (1 - ay) * img[y0, x0 + 1]
+                   + (1 - ax) * ay * img[y0 + 1, x0] + ax * ay * img[y0 + 1, x0 + 1])
+            assert np.abs(out[v, u].astype(float) - ref).max() <= 1.0
+
+
+def test_crop_square_maps_a_dot_to_the_documented_pixel():
+    img = np.zeros((400, 400, 3), np.uint8)
+    img[200:204, 120:124] = 255  # a 4x4 block centred on (121.5, 201.5)
+    view_box = (100.0, 180.0, 64.0)  # 4 image px per crop px when cropping to 16
+    out = crop_square(img, view_box, size=16).astype(float)[..., 0]
+    v, u = np.unravel_index(out.argmax(), out.shape)
+    s = 4.0
+    assert (u + 0.5) * s - 0.5 + view_box[0] == pytest.approx(121.5, abs=s / 2 + 1e-9)
+    assert (v + 0.5) * s - 0.5 + view_box[1] == pytest.approx(201.5, abs=s / 2 + 1e-9)

@@ -1,0 +1,56 @@
+import numpy as np
+import pytest
+
+from facenormals.reconstruct import ImageReadError, read_image
+
+
+def _banded(h=20, w=40):
+    a = np.zeros((h, w, 3), np.uint8)
+    a[:, :10] = (255, 0, 0)  # red band on the left
+    return a
+
+
+@pytest.mark.parametrize("orientation,where", [(1, "left"), (3, "right"), (6, "top"), (8, "bottom")])
+def test_exif_orientation_is_applied(tmp_path, orientation, where):
+    PIL = pytest.importorskip("PIL.Image")
+    img = PIL.fromarray(_banded())
+    exif = img.getexif()
+    exif[0x0112] = orientation
+    path = tmp_path / "photo.jpg"
+    img.save(path, exif=exif.tobytes(), quality=95)
+    out = read_image(path)
+    assert out.shape == ((20, 40, 3) if orientation in (1, 3) else (40, 20, 3))
+    red = out[..., 0].astype(float) - out[..., 1]
+    band = {"left": red[:, :5], "right": red[:, -5:], "top": red[:5], "bottom": red[-5:]}[where]
+    assert band.mean() > 200 and red.mean() < 100
+
+
+def test_grey_rgba_and_16_bit_become_rgb_uint8(tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "g.png"), np.full((5, 7), 90, np.uint8))
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((5, 7, 4), 90, np.uint8))
+    cv2.imwrite(str(tmp_path / "d.png"), np.full((5, 7, 3), 65535, np.uint16))
+    for name in ("g.png", "a.png"):
+        out = read_image(tmp_path / name)
+        assert out.shape == (5, 7, 3) and out.dtype == np.uint8 and (out == 90).all()
+    assert (read_image(tmp_path / "d.png") == 255).all()
+
+
+def test_colour_order_is_rgb(tmp_path):
+    import cv2
+
+    bgr = np.zeros((3, 3, 3), np.uint8)
+    bgr[..., 2] = 255  # red in OpenCV's BGR
+    cv2.imwrite(str(tmp_path / "r.png"), bgr)
+    assert read_image(tmp_path / "r.png")[0, 0].tolist() == [255, 0, 0]
+
+
+def test_errors_name_the_file(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / "empty.jpg").write_bytes(b"")
+    for name, message in (("notes.txt", "not an image"), ("empty.jpg", "not an image"), ("missing.jpg", "no such file")):
+        with pytest.raises(ImageReadError, match=f"{name}: {message}"):
+            read_image(tmp_path / name)
+    with pytest.raises(ImageReadError, match="not a file"):
+        read_image(tmp_path)

@@ -1,0 +1,152 @@
+"""The product recipe with an oracle "network" (exact maps), and the command line's error handling."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from facenormals.data import landmark_maps
+from facenormals.fitting.oracle import render_oracle_views
+from facenormals.models import LANDMARK_NAMES, builtin_head_model
+from facenormals.nn import NormalLandmarkUNet, UNetOutput
+from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
+from facenormals.reconstruct import PhotoView, Reconstruction, predict_maps, reconstruct_views, write_reconstruction
+
+
+class OracleNet(nn.Module):
+    """Returns fixed maps whatever the input: the exact normals and landmark Gaussians of a known head."""
+
+    def __init__(self, normal_maps, landmarks):
+        super().__init__()
+        self.dummy = nn.Parameter(torch.zeros(()))
+        fg = normal_maps.norm(dim=1, keepdim=True) > 0.5
+        self.normals = torch.where(fg, normal_maps, torch.tensor([0.0, 0.0, -1.0]).view(1, 3, 1, 1))
+        self.logits = fg.float() * 20 - 10
+        self.maps = landmark_maps(landmarks, torch.isfinite(landmarks).all(-1), normal_maps.shape[-2:])
+
+    def forward(self, images):
+        return UNetOutput(self.normals, self.maps, self.logits)
+
+
+@pytest.fixture(scope="module")
+def oracle():
+    model = builtin_head_model().to(torch.float32)
+    g = torch.Generator().manual_seed(4)
+    y = model.sample_shape_coeffs(1, generator=g)
+    views = render_oracle_views(model, y, [-30.0, 0.0, 30.0])
+    names = model.landmark_names
+    order = [names.index(n) for n in LANDMARK_NAMES]  # network channels are in LANDMARK_NAMES order
+    return model, views, order
+
+
+def test_reconstruct_views_recovers_the_oracle_head(oracle):
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0], views.landmarks[0][:, order])
+    maps, fit = reconstruct_views(torch.zeros(3, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]))
+    assert maps.found.all(-1).tolist() == views.landmark_mask[0].all(-1).tolist()
+    err = (fit.vertices[0] - views.vertices[0]).norm(dim=-1)
+    base = (model.mean - views.vertices[0]).norm(dim=-1)
+    face = model.face_region
+    assert err[face].mean() < 0.5 * base[face].mean()
+    torch.testing.assert_close(fit.angles[0, :, 2], views.angles[0, :, 2], atol=0.03, rtol=0)
+
+
+def test_landmark_channels_are_matched_by_name(oracle):
+    """A model with fewer landmarks in another order (say, a face-only model without ears) still fits."""
+    import copy
+
+    model, views, order = oracle
+    shuffled = copy.deepcopy(model)
+    keep = list(range(16))[::-1]
+    shuffled.landmark_names = [model.landmark_names[i] for i in keep]
+    shuffled.landmark_indices = model.landmark_indices[keep]
+    net = OracleNet(views.normal_maps[0][:1], views.landmarks[0][:1, order])
+    _, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, shuffled, focal=float(views.intrinsics[0, 0, 0]))
+    assert float(fit.landmark_rms_px[0, 0]) < 1.0
+    unknown = copy.deepcopy(model)
+    unknown.landmark_names = ["glabella"] + model.landmark_names[1:]
+    with pytest.raises(ValueError, match="glabella"):
+        reconstruct_views(torch.zeros(1, 3, 128, 128), net, unknown)
+
+
+def test_write_reconstruction_files_and_params(oracle, tmp_path):
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
+    crop = np.full((128, 128, 3), 100, np.uint8)
+    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]))
+    view = PhotoView(crop=crop, box=(40.0, 20.0, 256.0), image_size=(400, 300), path="photo.jpg")
+    written = write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
+    names = sorted(p.name for p in written)
+    assert names == sorted(["head.ply", "head.obj", "params.json", "view0_overlay.png", "view0_normals.png",
+                            "view0_landmarks.png"])
+    params = json.loads((tmp_path / "params.json").read_text())
+    assert params["model"] == "builtin" and len(params["shape_coeffs"]) == model.num_shape
+    intr = params["views"][0]["intrinsics_image_px"]
+    f_crop = params["views"][0]["intrinsics_crop_px"]["f"]
+    assert intr["f"] == pytest.approx(2.0 * f_crop)  # 256-px box into 128 px
+    u0 = params["views"][0]["intrinsics_crop_px"]["u0"]
+    assert intr["u0"] == pytest.approx(40.0 + (u0 + 0.5) * 2.0 - 0.5)
+    from facenormals.mesh import load_mesh
+
+    v, f = load_mesh(tmp_path / "head.obj")
+    assert v.shape == (model.num_vertices, 3)
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_photo_view_maps_crop_pixels_to_image_pixels():
+    view = PhotoView(crop=np.zeros((128, 128, 3), np.uint8), box=(10.0, 20.0, 64.0))
+    out = view.to_image(torch.tensor([[0.0, 0.0], [127.0, 127.0]]))
+    torch.testing.assert_close(out, torch.tensor([[9.75, 19.75], [73.25, 83.25]]))
+
+
+def test_predict_maps_shapes_and_nan_for_missing_landmarks():
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    with torch.no_grad():
+        net.head.bias[3:27] = -5.0  # no landmark map reaches the threshold
+    maps = predict_maps(net, torch.rand(2, 3, 16, 16))
+    assert maps.found.sum() == 0 and torch.isnan(maps.landmarks).all()
+    n = maps.normal_maps.norm(dim=1)
+    assert ((n - 1).abs() < 1e-5).logical_or(n == 0).all()
+
+
+@pytest.fixture(scope="module")
+def random_weights(tmp_path_factory):
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    path = tmp_path_factory.mktemp("w") / "random.pt"
+    torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION,
+                "architecture": {"base_channels": 4, "depth": 2, "num_landmarks": 24},
+                "state_dict": net.state_dict(), "metadata": {}}, path)
+    return path
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "facenormals.cli", "reconstruct", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_cli_errors_name_the_file_and_keep_earlier_output(tmp_path, random_weights):
+    import cv2
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "head.ply").write_text("earlier result")
+    notes = tmp_path / "notes.jpg"
+    notes.write_text("not a picture")
+    flat = tmp_path / "wall.png"
+    cv2.imwrite(str(flat), np.full((240, 320, 3), 128, np.uint8))
+    for bad, message in ((notes, "not an image"), (flat, "no face found"), (tmp_path / "gone.jpg", "no such file")):
+        result = _cli(bad, "-o", out, "--weights", random_weights, "--model", "builtin")
+        assert result.returncode != 0
+        assert f"{bad}: {message}" in result.stderr and "Traceback" not in result.stderr
+    assert (out / "head.ply").read_text() == "earlier result"
+    assert sorted(p.name for p in out.iterdir()) == ["head.ply"]
+
+
+def test_cli_rejects_a_box_count_mismatch(tmp_path, random_weights):
+    result = _cli(tmp_path / "a.jpg", tmp_path / "b.jpg", "-o", tmp_path, "--box", "1,2,3,4",
+                  "--weights", random_weights)
+    assert result.returncode != 0 and "--box" in result.stderr
