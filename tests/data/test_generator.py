@@ -162,6 +162,27 @@ def test_same_seed_and_index_give_identical_bytes(generator):
     assert other.image.tobytes() != alone.image.tobytes(), "another seed gives another sample"
 
 
+def test_fixed_poses_give_views_of_one_person(generator):
+    plain = generator.sample(3, 7)
+    same = generator.generate(3, [7], angles=[plain.angles[0]])
+    for name in ("image", "normals", "landmarks", "intrinsics", "translation"):
+        assert getattr(same, name).tobytes() == getattr(plain, name).tobytes(), name
+    yaws = [-0.7, 0.0, 0.7]
+    views = generator.generate(3, [7, 7, 7], angles=[(0.0, 0.1, y) for y in yaws])
+    np.testing.assert_array_equal(views.shape_coeffs, np.repeat(plain.shape_coeffs, 3, axis=0))
+    np.testing.assert_allclose(views.angles[:, 2], yaws, atol=1e-7)
+    np.testing.assert_allclose(views.rotation, euler_to_rotation_matrix(torch.tensor([(0.0, 0.1, y) for y in yaws]))
+                               .numpy(), atol=1e-6)
+    assert len({views.image[i].tobytes() for i in range(3)}) == 3
+    # the nose tip swings from one side of the eye-corner midpoint to the other
+    names = list(generator.model.landmark_names)
+    nose, eyes = names.index("nose_tip"), [names.index("right_eye_outer"), names.index("left_eye_outer")]
+    offset = views.landmarks[:, nose, 0] - views.landmarks[:, eyes, 0].mean(1)
+    assert offset[0] * offset[2] < 0 and abs(offset[1]) < min(abs(offset[0]), abs(offset[2]))
+    with pytest.raises(ValueError, match="angles"):
+        generator.generate(3, [7, 8], angles=[(0.0, 0.0, 0.0)])
+
+
 def test_variation(generator):
     b = generator.generate(21, range(16))
     vertices, R, t, K = _ground_truth(generator.model, b)

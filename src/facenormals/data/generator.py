@@ -271,12 +271,17 @@ class SyntheticHeadGenerator:
 
     # ------------------------------------------------------------------ public
 
-    def generate(self, seed: int, indices: Iterable[int]) -> SynthBatch:
+    def generate(self, seed: int, indices: Iterable[int], angles: Sequence[Sequence[float]] | None = None) -> SynthBatch:
         """Generate the samples ``indices`` of the dataset ``seed``.
 
         Args:
             seed: dataset seed, an integer ``>= 0``.
             indices: sample indices, integers ``>= 0`` (any order, repeats allowed).
+            angles: optional ``(roll, pitch, yaw)`` in radians per entry of ``indices``, replacing
+                the sampled head pose and keeping everything else of the sample (identity,
+                expression, appearance, hair, lights, camera): repeating an index with several
+                poses gives a multi-view set of one person, e.g.
+                ``generate(0, [7, 7, 7], angles=[(0, 0, -0.8), (0, 0, 0), (0, 0, 0.8)])``.
 
         Returns:
             The :class:`SynthBatch`, in the order of ``indices``.
@@ -286,6 +291,11 @@ class SyntheticHeadGenerator:
         """
         seed = _check_int(seed, "seed")
         indices = [_check_int(i, "indices") for i in indices]
+        if angles is not None:
+            angles = [np.asarray(a, dtype=np.float32) for a in angles]
+            if len(angles) != len(indices) or any(a.shape != (3,) or not np.isfinite(a).all() for a in angles):
+                raise ValueError(f"angles: expected {len(indices)} finite (roll, pitch, yaw) triples, one per index, "
+                                 f"got {np.asarray(angles).shape}")
         capacity = self.renderer.capacity
         groups: list[list[int]] = []
         used: set[int] = set()
@@ -298,7 +308,7 @@ class SyntheticHeadGenerator:
             used.add(tile)
         results: list[SynthBatch] = []
         for group in groups:
-            plans = [self._plan(seed, indices[p]) for p in group]
+            plans = [self._plan(seed, indices[p], None if angles is None else angles[p]) for p in group]
             rendered = self.renderer.render([p.scene for p in plans], [p.index % capacity for p in plans])
             results.append(self._finish(plans, rendered))
         if not results:
@@ -362,7 +372,7 @@ class SyntheticHeadGenerator:
         translation = rotation.T @ np.array([xy[0], xy[1], z]) - middle
         return np.array([f, u0, v0], dtype=np.float32), translation.astype(np.float32)
 
-    def _plan(self, seed: int, index: int) -> _Plan:
+    def _plan(self, seed: int, index: int, pose: np.ndarray | None = None) -> _Plan:
         cfg = self.config
         rng = self._streams(seed, index)
         model = self.model
@@ -373,7 +383,7 @@ class SyntheticHeadGenerator:
         angles = np.radians(np.array([
             rng["pose"].uniform(-cfg.roll, cfg.roll), rng["pose"].uniform(-cfg.pitch, cfg.pitch),
             rng["pose"].uniform(-cfg.yaw, cfg.yaw),
-        ])).astype(np.float32)  # fmt: skip
+        ])).astype(np.float32) if pose is None else pose  # fmt: skip
         rotation = euler_to_rotation_matrix(torch.from_numpy(angles)[None])[0].numpy()
         intrinsics, translation = self._frame(rng["camera"], vertices, rotation.astype(np.float64))
         R, t = rotation.astype(np.float64), translation.astype(np.float64)
