@@ -1,12 +1,12 @@
 """Make the figures of the tutorials (docs/tutorials/*.md) under docs/img/tutorials/.
 
-Regenerate all of them with one command from the repository root (shipped weights, ICT-FaceKit):
+Regenerate all of them with one command from the repository root (shipped weights, ICT-FaceKit;
+RUN is the training run folder of the shipped weights, holding log.csv and eval.csv):
 
-    python docs/scripts/make_tutorial_figures.py --run runs/unet
+    python docs/scripts/make_tutorial_figures.py --run RUN
 
-`--weights PATH` uses another weight file, `--model` another morphable model (default ict), and
-`--run DIR` (a training run folder with log.csv and eval.csv) adds the training-curve figure; without
-it that figure is left as it is. Every figure is computed from scratch (no random state outside the
+`--weights PATH` uses another weight file and `--model` another morphable model (default ict).
+Without `--run` the training-curve figure is left as it is. About 30 s on a 2-core CPU. Every figure is computed from scratch (no random state outside the
 fixed seeds), so the same weights and model give the same pictures.
 
 Figures:
