@@ -270,6 +270,65 @@ def test_bad_elements_do_not_spoil_the_batch():
     assert result.num_iterations == int(result.iterations.max())
 
 
+@pytest.mark.parametrize("analytic", [True, False])
+def test_active_subset_matches_the_full_evaluation(analytic):
+    """Evaluating only the unfinished elements gives the full evaluation's results, and finished
+    elements are no longer evaluated."""
+    residual, x0, kind = make_mixed_batch()
+    rows = torch.arange(x0.shape[0])
+    calls: list[torch.Tensor] = []
+
+    def residual_subset(x, index):
+        calls.append(index.clone())
+        return torch.cat([residual(x[i : i + 1], int(b)) for i, b in enumerate(index)])
+
+    def jacobian(x, index):
+        return torch.stack([torch.func.jacfwd(lambda z: residual(z[None], int(b))[0])(x[i])
+                            for i, b in enumerate(index)])
+
+    full = levenberg_marquardt(residual, x0, max_iterations=200,
+                               jacobian_fn=(lambda x: jacobian(x, rows)) if analytic else None)
+    calls.clear()
+    subset = levenberg_marquardt(residual_subset, x0, max_iterations=200, active_subset=True,
+                                 jacobian_fn=jacobian if analytic else None)
+    assert torch.equal(subset.status, full.status) and subset.reasons == full.reasons
+    assert torch.equal(subset.iterations, full.iterations)
+    finite = torch.isfinite(full.cost)
+    assert_close(subset.x, full.x, rtol=1e-12, atol=1e-14)
+    assert_close(subset.cost[finite], full.cost[finite], rtol=1e-12, atol=1e-14)
+    assert torch.equal(calls[0], rows)  # everyone at the start ...
+    assert calls[-1].shape[0] < 5  # ... only the slowest at the end
+    evaluated = torch.zeros_like(rows)
+    for index in calls:
+        evaluated[index] += 1
+    # residuals and Jacobian at most once per own iteration (plus the start): none after stopping
+    assert evaluated[NAN_ROW] <= 2 and (evaluated <= 2 * (full.iterations + 1)).all()
+
+
+def test_active_subset_output_is_checked():
+    x0 = torch.zeros(3, 2, dtype=F64)
+    with pytest.raises(ValueError, match="residual_fn"):
+        levenberg_marquardt(lambda x, index: rosenbrock(x)[:1], x0, active_subset=True)
+
+
+def test_normal_equations_fn_matches_jacobian_fn():
+    problem = ExponentialFit(batch=5)
+
+    def normal_equations(x, r):
+        J = problem.jacobian(x)
+        return J.transpose(1, 2) @ J, (r[:, None] @ J)[:, 0]
+
+    reference = levenberg_marquardt(problem.residual, problem.x0, jacobian_fn=problem.jacobian)
+    result = levenberg_marquardt(problem.residual, problem.x0, normal_equations_fn=normal_equations)
+    assert torch.equal(result.iterations, reference.iterations)
+    assert_close(result.x, reference.x, rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="at most one"):
+        levenberg_marquardt(problem.residual, problem.x0, jacobian_fn=problem.jacobian,
+                            normal_equations_fn=normal_equations)
+    with pytest.raises(ValueError, match="normal_equations_fn output"):
+        levenberg_marquardt(problem.residual, problem.x0, normal_equations_fn=lambda x, r: normal_equations(x, r)[::-1])
+
+
 def make_singular_problem(dtype=F64, device="cpu"):
     """Linear least squares whose third parameter has a zero Jacobian column."""
     gen = torch.Generator().manual_seed(3)

@@ -174,6 +174,7 @@ def levenberg_marquardt(
     x0: Tensor,
     *,
     jacobian_fn: Callable[[Tensor], Tensor] | None = None,
+    normal_equations_fn: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None,
     max_iterations: int = 100,
     damping: float | Tensor = 1e-3,
     damping_mode: str = "marquardt",
@@ -185,6 +186,7 @@ def levenberg_marquardt(
     jacobian_mode: str = "forward",
     chunk_size: int | None = None,
     jacobian_dtype: torch.dtype | None = None,
+    active_subset: bool = False,
     verbose: bool = False,
 ) -> LMResult:
     r"""Solve a batch of independent non-linear least-squares problems with Levenberg-Marquardt.
@@ -216,9 +218,13 @@ def levenberg_marquardt(
     :attr:`LMStatus.MAX_ITERATIONS` otherwise. :attr:`LMResult.reasons` says which.
 
     **Batch independence.** Row ``b`` of ``residual_fn(x)`` must depend on ``x[b]`` only (the
-    problems are independent). ``residual_fn`` and ``jacobian_fn`` are always called with the full
-    batch ``(B, P)`` (frozen rows hold their final values), so they may close over per-element data
-    of batch size ``B``. The autograd Jacobians rely on the independence: forward mode pushes ``P``
+    problems are independent). By default ``residual_fn`` and ``jacobian_fn`` are always called with
+    the full batch ``(B, P)`` (frozen rows hold their final values), so they may close over
+    per-element data of batch size ``B``. With ``active_subset=True`` they are called as
+    ``fn(x[index], index)`` instead, where ``index`` ``(K,)`` (``torch.long``, ascending) lists the
+    elements that need a value: all of them at the start, then only the unfinished ones, so that
+    elements which stopped early cost nothing while the slowest ones finish. They return the ``K``
+    rows of those elements; the results are those of the full evaluation. The autograd Jacobians rely on the independence: forward mode pushes ``P``
     tangents, each one-hot in column ``p`` for *all* batch elements at once, through
     :func:`torch.func.jvp` (vmapped), which yields column ``p`` of every element's Jacobian; reverse
     mode pulls ``M`` one-hot cotangents through the batch-summed residuals with
@@ -250,6 +256,11 @@ def levenberg_marquardt(
             all computations and results follow it.
         jacobian_fn: optional analytic Jacobian, mapping ``x`` ``(B, P)`` to
             :math:`\partial r / \partial x` of shape ``(B, M, P)``. Autograd is used without it.
+        normal_equations_fn: instead of ``jacobian_fn``, a function mapping ``x`` ``(B, P)`` and
+            its residuals ``r`` ``(B, M)`` to :math:`J^\top J` ``(B, P, P)`` and :math:`J^\top r`
+            ``(B, P)`` (in the dtype of ``x0`` or ``jacobian_dtype``), for problems that form them
+            cheaper than :math:`J` (e.g. without its zero blocks). With ``active_subset`` it is
+            called as ``fn(x[index], r[index], index)``.
         max_iterations: the maximum number of iterations (accepted or rejected steps).
         damping: the initial damping factor λ (``0`` makes the first step Gauss-Newton), or one per
             element ``(B,)``, e.g. :attr:`LMResult.damping` of a previous solve to warm-start it.
@@ -268,6 +279,8 @@ def levenberg_marquardt(
             residuals, costs, gain ratios and the solve stay in the dtype of ``x0``, so steps are
             inexact Gauss-Newton steps that still converge to the float64 optimum (the final
             cost agrees to far better than 1e-6 relative; ``x`` to about 1e-6).
+        active_subset: call ``residual_fn`` and ``jacobian_fn`` as ``fn(x[index], index)`` on the
+            elements that need them only (see *Batch independence*).
         verbose: print one line per iteration (iteration, mean cost, active elements).
 
     Returns:
@@ -300,8 +313,11 @@ def levenberg_marquardt(
     )
     if not callable(residual_fn):
         raise ValueError(f"residual_fn: expected a callable, got {type(residual_fn).__name__}")
-    if jacobian_fn is not None and not callable(jacobian_fn):
-        raise ValueError(f"jacobian_fn: expected a callable, got {type(jacobian_fn).__name__}")
+    for name, fn in (("jacobian_fn", jacobian_fn), ("normal_equations_fn", normal_equations_fn)):
+        if fn is not None and not callable(fn):
+            raise ValueError(f"{name}: expected a callable, got {type(fn).__name__}")
+    if jacobian_fn is not None and normal_equations_fn is not None:
+        raise ValueError("normal_equations_fn: expected at most one of jacobian_fn and normal_equations_fn")
     dims = check_shape(x0, ["B", "P"], "x0")
     check_floating(x0, "x0")
     if dims["B"] < 1 or dims["P"] < 1:
@@ -311,9 +327,9 @@ def levenberg_marquardt(
         raise ValueError(f"jacobian_dtype: expected a floating torch.dtype or None, got {jacobian_dtype!r}")
     with torch.no_grad():
         return _solve(
-            residual_fn, x0.detach().clone(), jacobian_fn, max_iterations, damping,
+            residual_fn, x0.detach().clone(), jacobian_fn, normal_equations_fn, max_iterations, damping,
             damping_mode == "marquardt", ftol, xtol, gtol, min_damping, max_damping,
-            jacobian_mode, chunk_size, verbose, jacobian_dtype,
+            jacobian_mode, chunk_size, verbose, jacobian_dtype, active_subset,
         )
 
 
@@ -321,6 +337,7 @@ def _solve(
     residual_fn: Callable[[Tensor], Tensor],
     x: Tensor,
     jacobian_fn: Callable[[Tensor], Tensor] | None,
+    normal_equations_fn: Callable[..., tuple[Tensor, Tensor]] | None,
     max_iterations: int,
     damping: float | Tensor,
     marquardt: bool,
@@ -333,6 +350,7 @@ def _solve(
     chunk_size: int | None,
     verbose: bool,
     jacobian_dtype: torch.dtype | None,
+    active_subset: bool,
 ) -> LMResult:
     B, P = x.shape
     dtype, device = x.dtype, x.device
@@ -340,24 +358,43 @@ def _solve(
     info_ = torch.finfo(dtype)
     dims: dict[str, int] = {"B": B, "P": P}
 
-    def residuals(x_: Tensor) -> Tensor:
-        r_ = residual_fn(x_)
-        _check_output(r_, ["B", "M"], "residual_fn output", dims, x)
+    everyone = torch.arange(B, device=device)
+
+    def residuals(x_: Tensor, index: Tensor) -> Tensor:
+        """Residuals of the elements ``index`` (all rows without ``active_subset``)."""
+        if active_subset:
+            r_ = residual_fn(x_[index], index)
+            _check_output(r_, [index.shape[0], "M"], "residual_fn output", dims, x)
+        else:
+            r_ = residual_fn(x_)
+            _check_output(r_, ["B", "M"], "residual_fn output", dims, x)
         return r_
 
-    def normal_equations(x_: Tensor, r_: Tensor) -> tuple[Tensor, Tensor]:
+    def normal_equations(x_: Tensor, r_: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+        """``JᵀJ`` and ``Jᵀr`` of the elements ``index`` (all rows without ``active_subset``)."""
+        if active_subset:
+            x_, r_ = x_[index], r_[index]
+            fn = lambda z: residual_fn(z, index)  # noqa: E731
+        else:
+            fn = residual_fn
+        count = x_.shape[0]
+        if normal_equations_fn is not None:
+            hessian, gradient = normal_equations_fn(x_, r_, index) if active_subset else normal_equations_fn(x_, r_)
+            _check_output(hessian, [count, "P", "P"], "normal_equations_fn output", dims, x, jacobian_dtype)
+            _check_output(gradient, [count, "P"], "normal_equations_fn output", dims, x, jacobian_dtype)
+            return hessian.to(dtype), gradient.to(dtype)
         if jacobian_fn is not None:
-            jac = jacobian_fn(x_)
-            _check_output(jac, ["B", "M", "P"], "jacobian_fn output", dims, x, jacobian_dtype)
+            jac = jacobian_fn(x_, index) if active_subset else jacobian_fn(x_)
+            _check_output(jac, [count, "M", "P"], "jacobian_fn output", dims, x, jacobian_dtype)
         elif jacobian_mode == "forward":
             # P tangents, one-hot in column p for all batch elements at once: (P, B, M) -> (B, M, P).
             def column(tangent: Tensor) -> Tensor:
-                return torch.func.jvp(residual_fn, (x_,), (tangent.expand(B, P),))[1]
+                return torch.func.jvp(fn, (x_,), (tangent.expand(count, P),))[1]
 
             jac = torch.func.vmap(column, chunk_size=chunk_size)(eye).permute(1, 2, 0)
         else:
             # M cotangents through the batch-summed residuals: (M, B, P) -> (B, M, P).
-            jac = torch.func.jacrev(lambda z: residual_fn(z).sum(0), chunk_size=chunk_size)(x_)
+            jac = torch.func.jacrev(lambda z: fn(z).sum(0), chunk_size=chunk_size)(x_)
             jac = jac.permute(1, 0, 2)
         jac = jac.to(jacobian_dtype)
         hessian = torch.matmul(jac.transpose(1, 2), jac)
@@ -378,7 +415,7 @@ def _solve(
         code = torch.where(hit, reason, code)
         return active_ & ~hit
 
-    r = residuals(x)
+    r = residuals(x, everyone)
     cost = half_sq(r)
     initial_cost = cost.clone()
     active = torch.isfinite(cost)
@@ -392,7 +429,7 @@ def _solve(
     iterations = torch.zeros(B, dtype=torch.long, device=device)
     eye = torch.eye(P, dtype=dtype, device=device)
 
-    H, g = normal_equations(x, r)
+    H, g = normal_equations(x, r, everyone)
     finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
     active = stop(active, ~finite_jac, _BAD_JACOBIAN)
     active = stop(active, g.abs().amax(-1) <= gtol, _GTOL)
@@ -436,7 +473,11 @@ def _solve(
         step = torch.where(act, step, 0.0)
 
         x_trial = x + step
-        r_trial = residuals(x_trial)
+        if active_subset:  # the others keep their residuals (their trial is discarded anyway)
+            index = active.nonzero().squeeze(1)
+            r_trial = r.index_copy(0, index, residuals(x_trial, index))
+        else:
+            r_trial = residuals(x_trial, everyone)
         cost_trial = half_sq(r_trial)
         actual = cost - cost_trial
         trial_ok = torch.isfinite(cost_trial) & torch.isfinite(step).all(-1) & torch.isfinite(pred)
@@ -468,9 +509,14 @@ def _solve(
         need_jacobian = accepted & active
         flags = torch.stack([need_jacobian.any(), active.any()]).tolist()
         if flags[0]:
-            H_new, g_new = normal_equations(x, r)
-            H = torch.where(need_jacobian[:, None, None], H_new, H)
-            g = torch.where(need_jacobian[:, None], g_new, g)
+            if active_subset:
+                index = need_jacobian.nonzero().squeeze(1)
+                H_new, g_new = normal_equations(x, r, index)
+                H, g = H.index_copy(0, index, H_new), g.index_copy(0, index, g_new)
+            else:
+                H_new, g_new = normal_equations(x, r, everyone)
+                H = torch.where(need_jacobian[:, None, None], H_new, H)
+                g = torch.where(need_jacobian[:, None], g_new, g)
             diag_max = torch.maximum(diag_max, H.diagonal(dim1=-2, dim2=-1))
             finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
             active = stop(active, need_jacobian & ~finite_jac, _BAD_JACOBIAN)
