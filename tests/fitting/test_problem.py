@@ -44,3 +44,52 @@ def test_pack_unpack_round_trip():
     assert x.shape == (1, 6 + 3 * 9)
     assert torch.equal(p["shape"], y) and torch.equal(p["angles"], obs.angles)
     assert torch.equal(p["translation"], obs.translation) and torch.equal(p["intrinsics"], obs.intrinsics)
+
+
+def two_subject_problem(**options):
+    model = small_model()
+    g = torch.Generator().manual_seed(1)
+    heads = [render_oracle_views(model, model.sample_shape_coeffs(1, generator=g), yaws, image_size=48)
+             for yaws in ([-20.0, 30.0], [10.0, 50.0])]
+    cat = lambda name: torch.cat([getattr(h, name) for h in heads])  # noqa: E731
+    problem = HeadFitProblem(model, cat("normal_maps"), cat("landmarks"), cat("landmark_mask"), cat("intrinsics"),
+                             **options)
+    x = problem.pack(0.5 * cat("shape_coeffs"), cat("angles") + 0.02, cat("translation") + 2.0, cat("intrinsics") * 1.02)
+    problem.update_visibility(x, min_facing=0.1)
+    problem.update_robust_weights(x, 0.1)
+    return problem, x
+
+
+def test_normal_equations_match_the_jacobian():
+    problem, x = two_subject_problem()
+    J, r = problem.jacobian(x), problem.residuals(x)
+    H, g = problem.normal_equations(x, r)
+    torch.testing.assert_close(H, J.transpose(1, 2) @ J, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(g, (r[:, None] @ J)[:, 0], rtol=1e-10, atol=1e-10)
+
+
+def test_subject_subsets_match_the_full_batch():
+    problem, x = two_subject_problem()
+    r, J = problem.residuals(x), problem.jacobian(x)
+    H, g = problem.normal_equations(x, r)
+    for b in range(2):
+        index = torch.tensor([b])
+        torch.testing.assert_close(problem.residuals(x[index], index), r[index])
+        torch.testing.assert_close(problem.jacobian(x[index], index=index), J[index])
+        H_b, g_b = problem.normal_equations(x[index], r[index], index=index)
+        torch.testing.assert_close(H_b, H[index])
+        torch.testing.assert_close(g_b, g[index])
+
+
+def test_vertex_subset_restricts_the_normal_rows():
+    from facenormals.fitting.subsample import grid_subset
+
+    full, x = two_subject_problem()
+    subset = grid_subset(full.model.mean, 8.0)
+    assert 0 < int(subset.sum()) < subset.shape[0]
+    problem, _ = two_subject_problem(vertex_subset=subset)
+    assert subset[problem.vis_index[problem.vis_valid]].all()
+    assert int(problem.vis_valid.sum()) == int((full.vis_valid & subset[full.vis_index]).sum())
+    J = problem.jacobian(x)
+    torch.testing.assert_close(J, torch.func.jacfwd(problem.residuals)(x).diagonal(dim1=0, dim2=2).permute(2, 0, 1),
+                               rtol=1e-7, atol=1e-7)

@@ -5,8 +5,8 @@ Parameters of one subject, packed in this order:
 - shape ``y`` (K), then expression ``e`` (E) if fitted;
 - per view: ``(roll, pitch, yaw)``, ``t`` (3) and, if fitted, the intrinsics ``(f, u0, v0)``.
 
-Residuals of one subject, per view: the normal term for the view's visible vertices (3 per vertex,
-padded to a common count), the landmark term (2 per landmark); then the shape prior (K), an
+Residuals of one subject: the normal term of every view's visible vertices (3 per vertex, padded to
+a common count ``S``), the landmark term of every view (2 per landmark), the shape prior (K), an
 expression prior if fitted, and an intrinsics prior per view if fitted. With
 :math:`X = X_0 + W y + E e`, :math:`X_c = R (X + t)`, :math:`a = \pi_K(X_c)` and :math:`n_c = R\, n(X)`,
 the normal residual is :math:`r = \sqrt{\lambda_N}\,(N(a) - n_c)` and its Jacobian
@@ -16,9 +16,12 @@ the normal residual is :math:`r = \sqrt{\lambda_N}\,(N(a) - n_c)` and its Jacobi
     \frac{\partial r}{\partial \xi} = \sqrt{\lambda_N}\Big(\nabla N(a)\,\frac{\partial a}{\partial \xi}
     - \frac{\partial n_c}{\partial \xi}\Big),
 
-with :math:`\nabla N` from :func:`~facenormals.sampling.sample_bicubic_with_gradient`,
-:math:`\partial a / \partial X_c` from :func:`~facenormals.geometry.projection_jacobian` and
-:math:`\partial n / \partial y` from :class:`~facenormals.mesh.VertexNormalsJacobian`.
+with :math:`\nabla N` from :func:`~facenormals.sampling.sample_bicubic_with_gradient` and
+:math:`\partial a / \partial X_c` from :func:`~facenormals.geometry.projection_jacobian`. For the
+shape, :math:`\partial r_i / \partial y = \sum_g A_{ig} W_g` over the ring of vertex :math:`i`, with
+3×3 blocks :math:`A_{ig} = \sqrt{\lambda_N}(\delta_{ig} \nabla N\, \partial a / \partial X_c\, R - R M_{ig})`
+and the normal derivative blocks :math:`M_{ig}` of :class:`~facenormals.fitting.rings.Rings`: all
+normal rows are one sparse (CSR) product with the basis rows :math:`W`.
 """
 
 from __future__ import annotations
@@ -26,10 +29,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.autograd.forward_ad as fwAD
 from torch import Tensor
+from torch._C._functorch import is_functorch_wrapped_tensor
 
-from facenormals.energy import landmark_residuals, normal_residuals, prior_residuals
+from facenormals.energy import landmark_residuals, prior_residuals
 from facenormals.energy.residuals import _foreground as map_foreground
+from facenormals.fitting.rings import RingRows, Rings
 from facenormals.geometry import (
     euler_rotation_derivatives,
     euler_to_rotation_matrix,
@@ -37,7 +43,7 @@ from facenormals.geometry import (
     projection_jacobian,
     transform_points,
 )
-from facenormals.mesh import VertexNormalsJacobian, vertex_normals
+from facenormals.mesh import vertex_normals
 from facenormals.models import MorphableModel
 from facenormals.render import rasterize_triangles, splat_zbuffer, visible_vertices
 from facenormals.sampling import sample_bicubic_with_gradient
@@ -66,8 +72,23 @@ class FitWeights:
     center_std: float = 4.0
 
 
+@dataclass
+class _Layout:
+    """The sparse structure of a round for a list of subjects (see :meth:`HeadFitProblem._layout`)."""
+
+    rings: Rings
+    slot: Tensor  # (K, V, S) ring slot of each residual vertex, ``U`` for padding
+    vertex: Tensor  # (K, V, S) flat vertex id ``k N + i``
+    rows: RingRows
+    pair_view: Tensor  # (T,) flat (subject, view) of each (entry, block) pair
+    diagonal: Tensor  # (D,) the pairs whose block column is the entry's own vertex
+
+
 class HeadFitProblem:
     """The fitting energy of ``B`` subjects with ``V`` views each, for :func:`levenberg_marquardt`.
+
+    Every evaluation method takes an optional ``index`` ``(K,)`` of the subjects that ``x`` ``(K, P)``
+    holds, so that a solver can evaluate only its unfinished batch elements.
 
     Args:
         model: the morphable model (its dtype is the problem's dtype).
@@ -81,6 +102,8 @@ class HeadFitProblem:
         fit_expression: fit expression coefficients (shared by the views).
         view_weights: ``(B, V)`` extra weight of each view's normal term (e.g. 0 for a view whose
             map has no foreground).
+        vertex_subset: ``(N,)`` bool, the vertices the normal term may use (default: all), e.g.
+            :func:`~facenormals.fitting.subsample.grid_subset` of the mean head.
     """
 
     def __init__(
@@ -94,35 +117,38 @@ class HeadFitProblem:
         fit_intrinsics: bool = True,
         fit_expression: bool = False,
         view_weights: Tensor | None = None,
+        vertex_subset: Tensor | None = None,
     ) -> None:
         self.model = model
         self.B, self.V = normal_maps.shape[:2]
         self.H, self.W = normal_maps.shape[-2:]
+        self.N = model.num_vertices
         self.K = model.num_shape
         self.E = model.num_expressions if fit_expression else 0
+        self.C = self.K + self.E
         self.fit_intrinsics = fit_intrinsics
         self.per_view = 9 if fit_intrinsics else 6
-        self.P = self.K + self.E + self.V * self.per_view
+        self.P = self.C + self.V * self.per_view
         self.dtype = model.mean.dtype
+        device = normal_maps.device
         self.normal_maps = normal_maps.to(self.dtype)
         self.landmarks = landmarks.to(self.dtype)
         self.landmark_mask = landmark_mask
         self.intrinsics_prior = intrinsics_prior.to(self.dtype)
         self.weights = weights
-        ones = torch.ones(self.B, self.V, dtype=self.dtype, device=normal_maps.device)
+        ones = torch.ones(self.B, self.V, dtype=self.dtype, device=device)
         self.view_weights = ones if view_weights is None else view_weights.to(self.dtype)
-        self.normals_jacobian = VertexNormalsJacobian(model.faces, model.shape_basis)
-        self.expression_jacobian = (
-            VertexNormalsJacobian(model.faces, model.expression_basis) if self.E else None
-        )
-        self.W_basis = model.shape_basis.permute(1, 2, 0).contiguous()  # (N, 3, K)
-        self.E_basis = model.expression_basis.permute(1, 2, 0).contiguous() if self.E else None
+        self.vertex_subset = vertex_subset
+        basis = model.shape_basis.permute(1, 2, 0)  # (N, 3, K)
+        if self.E:
+            basis = torch.cat([basis, model.expression_basis.permute(1, 2, 0)], dim=-1)
+        self.basis_rows = basis.reshape(3 * self.N, self.C).contiguous()  # row 3 i + j: d X_ij / d (y, e)
+        self._basis_cast = {self.dtype: self.basis_rows}
         self.lm_index = model.landmark_indices
-        basis = self.W_basis if not self.E else torch.cat([self.W_basis, self.E_basis], dim=-1)
         self.basis_landmarks = basis[self.lm_index]  # (L, 3, C)
-        self.vis_index = torch.zeros(self.B, self.V, 1, dtype=torch.long, device=normal_maps.device)
-        self.vis_valid = torch.zeros(self.B, self.V, 1, dtype=torch.bool, device=normal_maps.device)
-        self.vertex_weights = torch.ones(self.B, self.V, 1, dtype=self.dtype, device=normal_maps.device)
+        self.L = self.lm_index.shape[0]
+        self.prior_jacobian = self._prior_jacobian()
+        self.set_visibility(torch.zeros(self.B, self.V, self.N, dtype=torch.bool, device=device))
 
     # ------------------------------------------------------------------------------------------
     # Parameters
@@ -138,28 +164,30 @@ class HeadFitProblem:
         parts.append(torch.cat(view, dim=-1).reshape(self.B, -1))
         return torch.cat(parts, dim=1)
 
-    def unpack(self, x: Tensor) -> dict[str, Tensor]:
-        """The named parameters of ``x`` ``(B, P)``."""
+    def unpack(self, x: Tensor, index: Tensor | None = None) -> dict[str, Tensor]:
+        """The named parameters of ``x`` ``(K, P)`` (the subjects ``index``, default all)."""
         out = {"shape": x[:, : self.K]}
-        out["expression"] = x[:, self.K : self.K + self.E] if self.E else None
-        views = x[:, self.K + self.E :].reshape(self.B, self.V, self.per_view)
+        out["expression"] = x[:, self.K : self.C] if self.E else None
+        views = x[:, self.C :].reshape(x.shape[0], self.V, self.per_view)
         out["angles"], out["translation"] = views[..., 0:3], views[..., 3:6]
-        out["intrinsics"] = views[..., 6:9] if self.fit_intrinsics else self.intrinsics_prior
+        out["intrinsics"] = views[..., 6:9] if self.fit_intrinsics else self._pick(self.intrinsics_prior, index)
         return out
 
-    def vertices(self, x: Tensor) -> Tensor:
-        p = self.unpack(x)
+    def vertices(self, x: Tensor, index: Tensor | None = None) -> Tensor:
+        """Model-frame vertices ``(K, N, 3)``."""
+        p = self.unpack(x, index)
         return self.model(p["shape"], p["expression"]) if self.E else self.model(p["shape"])
 
-    def _views(self, x: Tensor):
-        """Per (subject, view) flattened: vertices (BV, N, 3), R (BV, 3, 3), t (BV, 3), K (BV, 3)."""
-        p = self.unpack(x)
-        verts = self.vertices(x)
+    @staticmethod
+    def _pick(t: Tensor, index: Tensor | None) -> Tensor:
+        return t if index is None else t.index_select(0, index)
+
+    def _views(self, x: Tensor, index: Tensor | None):
+        """Parameters, vertices (K, N, 3), and per (subject, view) R (KV, 3, 3), t (KV, 3), K (KV, 3)."""
+        p = self.unpack(x, index)
+        verts = self.model(p["shape"], p["expression"]) if self.E else self.model(p["shape"])
         R = euler_to_rotation_matrix(p["angles"].reshape(-1, 3))
-        t = p["translation"].reshape(-1, 3)
-        K = p["intrinsics"].reshape(-1, 3)
-        verts_v = verts[:, None].expand(-1, self.V, -1, -1).reshape(self.B * self.V, -1, 3)
-        return p, verts, verts_v, R, t, K
+        return p, verts, R, p["translation"].reshape(-1, 3), p["intrinsics"].reshape(-1, 3)
 
     # ------------------------------------------------------------------------------------------
     # Visibility (fixed within an LM round)
@@ -169,11 +197,12 @@ class HeadFitProblem:
     def update_visibility(self, x: Tensor, min_facing: float = 0.0, exact: bool = True) -> Tensor:
         """Recompute which vertices each view sees (front-facing, not occluded, inside the image).
 
-        Returns the ``(B, V, N)`` visibility and stores the padded visible indices used by the residuals.
-        ``exact`` uses the triangle rasteriser's z-buffer, else the faster vertex splat
-        (:func:`~facenormals.render.splat_zbuffer`).
+        Returns the ``(B, V, N)`` visibility; the normal term then uses the visible vertices of
+        ``vertex_subset``. ``exact`` uses the triangle rasteriser's z-buffer, else the faster
+        vertex splat (:func:`~facenormals.render.splat_zbuffer`).
         """
-        _, verts, verts_v, R, t, K = self._views(x)
+        _, verts, R, t, K = self._views(x, None)
+        verts_v = verts[:, None].expand(-1, self.V, -1, -1).reshape(self.B * self.V, -1, 3)
         pixels, depth = project_points(verts_v, R, t, K)
         if exact:
             zbuffer = rasterize_triangles(pixels, depth, self.model.faces, (self.H, self.W)).depth
@@ -181,33 +210,62 @@ class HeadFitProblem:
             zbuffer = splat_zbuffer(pixels, depth, (self.H, self.W))
         normals = vertex_normals(verts, self.model.faces)
         normals_v = normals[:, None].expand(-1, self.V, -1, -1).reshape(self.B * self.V, -1, 3)
-        camera_normals = normals_v @ R.transpose(1, 2)
-        visible = visible_vertices(pixels, depth, camera_normals, transform_points(verts_v, R, t), zbuffer,
-                                   min_facing=min_facing)
-        counts = visible.sum(1)
+        visible = visible_vertices(pixels, depth, normals_v @ R.transpose(1, 2), transform_points(verts_v, R, t),
+                                   zbuffer, min_facing=min_facing).reshape(self.B, self.V, -1)
+        self.set_visibility(visible)
+        return visible
+
+    @torch.no_grad()
+    def set_visibility(self, visible: Tensor) -> None:
+        """Use the vertices ``visible`` ``(B, V, N)`` (and in ``vertex_subset``) in the normal term.
+
+        Stores the padded per-view vertex lists ``vis_index``, ``vis_valid`` ``(B, V, S)``, resets
+        the robust weights to 1, and builds each subject's ring structure.
+        """
+        used = visible & self.vertex_subset if self.vertex_subset is not None else visible
+        counts = used.sum(-1)
         size = max(int(counts.max()), 1)
-        order = torch.argsort((~visible).to(torch.uint8), dim=1, stable=True)[:, :size]
-        self.vis_index = order.reshape(self.B, self.V, size)
-        self.vis_valid = (torch.arange(size, device=x.device)[None] < counts[:, None]).reshape(self.B, self.V, size)
-        self.vertex_weights = torch.ones(self.B, self.V, size, dtype=self.dtype, device=x.device)
-        # Per-round caches of the Jacobian: per subject, the union of its views' visible vertices and
-        # the normal-Jacobian restricted to it, and the basis rows of each view's visible vertices.
-        per_subject = visible.reshape(self.B, self.V, -1).any(1)  # (B, N)
-        self.vis_compact = torch.zeros_like(self.vis_index)
-        self.normals_subsets, self.expression_subsets = [], []
+        self.vis_index = torch.argsort((~used).to(torch.uint8), dim=-1, stable=True)[..., :size]
+        self.vis_valid = torch.arange(size, device=used.device) < counts[..., None]
+        self.vertex_weights = torch.ones(self.B, self.V, size, dtype=self.dtype, device=used.device)
+        self._rings, self._slots = [], []
         for b in range(self.B):
-            union = per_subject[b].clone()
-            union[0] |= not bool(union.any())  # keep the caches non-empty when nothing is visible
-            union_index = torch.nonzero(union).squeeze(1)
-            compact = torch.zeros(union.shape[0], dtype=torch.long, device=x.device)
-            compact[union_index] = torch.arange(union_index.shape[0], device=x.device)
-            self.vis_compact[b] = compact[self.vis_index[b]]
-            self.normals_subsets.append(self.normals_jacobian.subset(union_index))
-            if self.E:
-                self.expression_subsets.append(self.expression_jacobian.subset(union_index))
-        basis = self.W_basis if not self.E else torch.cat([self.W_basis, self.E_basis], dim=-1)
-        self.basis_visible = basis[self.vis_index.reshape(self.B * self.V, size)]  # (BV, S, 3, C)
-        return visible.reshape(self.B, self.V, -1)
+            union = torch.nonzero(used[b].any(0)).squeeze(1)
+            self._rings.append(Rings.build(self.model.faces, union, self.N))
+            compact = torch.full((self.N,), -1, dtype=torch.long, device=used.device)
+            compact[union] = torch.arange(union.shape[0], device=used.device)
+            self._slots.append(torch.where(self.vis_valid[b], compact[self.vis_index[b]], -1))
+        self._layouts: dict[tuple[int, ...] | None, _Layout] = {}
+        self._cached: _Geometry | None = None
+
+    def _all_is_none(self, index: Tensor | None) -> Tensor | None:
+        """``None`` for all subjects (``index`` lists distinct subjects in ascending order)."""
+        return None if index is None or index.shape[0] == self.B else index
+
+    @staticmethod
+    def _key(index: Tensor | None) -> tuple[int, ...] | None:
+        return None if index is None else tuple(index.tolist())
+
+    def _layout(self, index: Tensor | None) -> _Layout:
+        """The ring and sparse-row structure of the subjects ``index``, built once per round."""
+        key = self._key(index)
+        if key in self._layouts:
+            return self._layouts[key]
+        ids = range(self.B) if key is None else key
+        rings = Rings.cat([self._rings[b] for b in ids], self.N)
+        slots, offset = [], 0
+        for b in ids:
+            slots.append(torch.where(self._slots[b] >= 0, self._slots[b] + offset, rings.num_slots))
+            offset += self._rings[b].num_slots
+        slot = torch.stack(slots)  # (K, V, S)
+        count = slot.shape[0]
+        vis_index = self._pick(self.vis_index, index)
+        vertex = vis_index + self.N * torch.arange(count, device=slot.device)[:, None, None]
+        rows = rings.row_structure(slot.reshape(-1), self.N)
+        diagonal = torch.nonzero(rings.block_vertex[rows.block] == vertex.reshape(-1)[rows.entry]).squeeze(1)
+        layout = _Layout(rings, slot, vertex, rows, rows.entry // slot.shape[-1], diagonal)
+        self._layouts[key] = layout
+        return layout
 
     @torch.no_grad()
     def update_robust_weights(self, x: Tensor, scale: float) -> Tensor:
@@ -228,155 +286,207 @@ class HeadFitProblem:
     # Residuals
     # ------------------------------------------------------------------------------------------
 
-    def _prior_rows(self, p: dict[str, Tensor]) -> list[Tensor]:
+    def _prior_rows(self, p: dict[str, Tensor], index: Tensor | None) -> list[Tensor]:
         w = self.weights
         rows = [prior_residuals(p["shape"], self.model.shape_std, weight=w.prior)]
         if self.E:
             rows.append(p["expression"] * w.expression_prior**0.5)
         if self.fit_intrinsics:
-            prior = self.intrinsics_prior
+            prior = self._pick(self.intrinsics_prior, index)
             scale = torch.stack(
                 [prior[..., 0] * w.focal_std, torch.full_like(prior[..., 0], w.center_std),
                  torch.full_like(prior[..., 0], w.center_std)], dim=-1)
-            rows.append(((p["intrinsics"] - prior) / scale).reshape(self.B, -1))
+            rows.append(((p["intrinsics"] - prior) / scale).reshape(prior.shape[0], -1))
         return rows
 
-    def residuals(self, x: Tensor) -> Tensor:
-        """All residuals ``(B, M)``; ``½‖r‖²`` is the weighted energy."""
-        return torch.cat(self.residual_terms(x, flat=True), dim=1)
+    def _prior_jacobian(self) -> Tensor:
+        """The constant Jacobian ``(B, rows, P)`` of the prior rows."""
+        w = self.weights
+        rows = self.C + (3 * self.V if self.fit_intrinsics else 0)
+        J = torch.zeros(self.B, rows, self.P, dtype=self.dtype, device=self.normal_maps.device)
+        J[:, : self.K, : self.K] = torch.diag(w.prior**0.5 / self.model.shape_std)
+        if self.E:
+            J[:, self.K : self.C, self.K : self.C] = torch.eye(self.E, dtype=self.dtype) * w.expression_prior**0.5
+        if self.fit_intrinsics:
+            prior = self.intrinsics_prior
+            for v in range(self.V):
+                c0 = self.C + v * self.per_view + 6
+                inv = torch.stack([1.0 / (prior[:, v, 0] * w.focal_std),
+                                   torch.full_like(prior[:, v, 0], 1.0 / w.center_std),
+                                   torch.full_like(prior[:, v, 0], 1.0 / w.center_std)], dim=-1)
+                J[:, self.C + 3 * v : self.C + 3 * v + 3, c0 : c0 + 3] = torch.diag_embed(inv)
+        return J
 
-    def residual_terms(self, x: Tensor, flat: bool = False) -> list[Tensor]:
-        """Residual blocks: per view ``[normals (B, V, S, 3), landmarks (B, V, L, 2)]`` then priors."""
-        p, verts, verts_v, R, t, K = self._views(x)
-        BV, S = self.B * self.V, self.vis_index.shape[-1]
-        index = self.vis_index.reshape(BV, S)
-        pts = torch.gather(verts_v, 1, index[..., None].expand(-1, -1, 3))
-        normals = vertex_normals(verts, self.model.faces)
-        normals_v = normals[:, None].expand(-1, self.V, -1, -1).reshape(BV, -1, 3)
-        n_vis = torch.gather(normals_v, 1, index[..., None].expand(-1, -1, 3)) @ R.transpose(1, 2)
-        uv, _ = project_points(pts, R, t, K)
-        maps = self.normal_maps.reshape(BV, 3, self.H, self.W)
-        r_n, _ = normal_residuals(maps, uv, n_vis, self.vis_valid.reshape(BV, S), weight=self.weights.normals)
-        r_n = r_n * (self.view_weights.reshape(BV, 1) * self.vertex_weights.reshape(BV, S)).sqrt()[..., None]
-        uv_lm, _ = project_points(verts_v[:, self.lm_index], R, t, K)
-        r_z = landmark_residuals(
-            uv_lm, self.landmarks.reshape(BV, -1, 2), self.landmark_mask.reshape(BV, -1), weight=self.weights.landmarks
-        )
-        views = torch.cat([r_n.reshape(self.B, self.V, -1), r_z.reshape(self.B, self.V, -1)], dim=-1)
-        blocks = [views.reshape(self.B, -1)] + self._prior_rows(p)
+    def _row_weights(self, index: Tensor | None) -> Tensor:
+        """sqrt of λN · view weight · robust weight, ``(KV, S)`` (0 on padding)."""
+        w = self.weights.normals * self._pick(self.view_weights, index)[..., None] * self._pick(self.vertex_weights, index)
+        w = w * self._pick(self.vis_valid, index)
+        return w.sqrt().reshape(-1, w.shape[-1])
+
+    def _geometry(self, x: Tensor, index: Tensor | None) -> "_Geometry":
+        """Everything the residuals and the Jacobian share at ``x``; the last one is cached, since a
+        solver asks for the Jacobian where it has just evaluated the residuals."""
+        index = self._all_is_none(index)
+        key = self._key(index)
+        cached, plain = self._cached, _is_plain(x)
+        if plain and cached is not None and cached.key == key and cached.x.shape == x.shape and torch.equal(cached.x, x):
+            return cached
+        p, verts, R, t, K = self._views(x, index)
+        layout = self._layout(index)
+        S = self.vis_index.shape[-1]
+        flat = verts.reshape(-1, 3)
+        normals = torch.cat([layout.rings.normals(flat), flat.new_zeros(1, 3)])
+        n_model = normals[layout.slot.reshape(-1, S)]  # (KV, S, 3)
+        uv, _ = project_points(flat[layout.vertex.reshape(-1, S)], R, t, K)
+        maps = self._pick(self.normal_maps, index).reshape(-1, 3, self.H, self.W)
+        sampled, grad, inside = sample_bicubic_with_gradient(maps, uv)
+        lm = verts[:, None, self.lm_index].expand(-1, self.V, -1, -1).reshape(-1, self.L, 3)
+        lm_uv, _ = project_points(lm, R, t, K)
+        geometry = _Geometry(x.clone(), key, layout, p, verts, R, t, K, n_model, sampled, grad,
+                             inside & map_foreground(maps, uv), lm, lm_uv)
+        if plain:
+            self._cached = geometry
+        return geometry
+
+    def residuals(self, x: Tensor, index: Tensor | None = None) -> Tensor:
+        """All residuals ``(K, M)`` of the subjects ``index`` (default all); ``½‖r‖²`` is the energy."""
+        return torch.cat(self.residual_terms(x, flat=True, index=index), dim=1)
+
+    def residual_terms(self, x: Tensor, flat: bool = False, index: Tensor | None = None) -> list[Tensor]:
+        """Residual blocks: ``[normals (K, V, S, 3), landmarks (K, V, L, 2)]`` then the priors."""
+        index = self._all_is_none(index)
+        g = self._geometry(x, index)
+        count, S = x.shape[0], self.vis_index.shape[-1]
+        n_cam = g.n_model @ g.R.transpose(1, 2)
+        r_n = torch.where(g.valid[..., None], g.sampled - n_cam, 0.0) * self._row_weights(index)[..., None]
+        r_z = landmark_residuals(g.lm_uv, self._pick(self.landmarks, index).reshape(-1, self.L, 2),
+                                 self._pick(self.landmark_mask, index).reshape(-1, self.L), weight=self.weights.landmarks)
+        priors = self._prior_rows(g.p, index)
         if flat:
-            return blocks
-        return [r_n.reshape(self.B, self.V, S, 3), r_z.reshape(self.B, self.V, -1, 2)] + blocks[1:]
+            return [r_n.reshape(count, -1), r_z.reshape(count, -1)] + priors
+        return [r_n.reshape(count, self.V, S, 3), r_z.reshape(count, self.V, self.L, 2)] + priors
 
     # ------------------------------------------------------------------------------------------
     # Jacobian
     # ------------------------------------------------------------------------------------------
 
-    def jacobian(self, x: Tensor, dtype: torch.dtype | None = None) -> Tensor:
-        """The analytic Jacobian ``(B, M, P)`` of :meth:`residuals`, formed in ``dtype`` (default: x's)."""
-        dtype = dtype or x.dtype
-        p, verts, verts_v, R, t, K = self._views(x)
-        B, V, Kdim, E = self.B, self.V, self.K, self.E
-        BV, S = B * V, self.vis_index.shape[-1]
-        L = self.lm_index.shape[0]
-        index = self.vis_index.reshape(BV, S)
-        angles = p["angles"].reshape(BV, 3)
-        D = euler_rotation_derivatives(angles)  # (BV, 3, 3, 3)
-
-        # per subject: the union of its visible vertices, (U_b, 3) normals and (U_b, 3, C) derivatives
-        normals_u, d_normals = [], []
-        for b in range(B):
-            n_b, dn_b = self.normals_subsets[b](verts[b : b + 1])
-            if E:
-                dn_b = torch.cat([dn_b, self.expression_subsets[b](verts[b : b + 1])[1]], dim=-1)
-            normals_u.append(n_b[0])
-            d_normals.append(dn_b[0])
-        C = Kdim + E
-
-        def view_rows(point_index: Tensor, with_normals: bool, Wq: Tensor):
-            """dr/d(shared, view) for points ``point_index`` (BV, Q) with basis rows ``Wq`` (BV, Q, 3, C)."""
-            Q = point_index.shape[1]
-            q = torch.gather(verts_v, 1, point_index[..., None].expand(-1, -1, 3)) + t[:, None]  # p + t
-            cam = q @ R.transpose(1, 2)
-            P = projection_jacobian(cam, K)  # (BV, Q, 2, 3)
-            PR = (P.unsqueeze(-1) * R[:, None, None]).sum(-2)  # (BV, Q, 2, 3)
-            A_shared = PR[..., 0:1] * Wq[:, :, None, 0]
-            A_shared.addcmul_(PR[..., 1:2], Wq[:, :, None, 1]).addcmul_(PR[..., 2:3], Wq[:, :, None, 2])
-            DQ = torch.einsum("bjkl,bnl->bnkj", D, q)  # (BV, Q, 3, 3)
-            A_angles = (P.unsqueeze(-1) * DQ.unsqueeze(-3)).sum(-2)  # (BV, Q, 2, 3)
-            A_view = [A_angles, PR]
-            if self.fit_intrinsics:
-                z = cam[..., 2:3]
-                d_f = cam[..., :2] / z  # (BV, Q, 2)
-                eye = torch.eye(2, dtype=x.dtype, device=x.device).expand(BV, Q, 2, 2)
-                A_view.append(torch.cat([d_f.unsqueeze(-1), eye], dim=-1))
-            A_view = torch.cat(A_view, dim=-1)  # (BV, Q, 2, per_view)
-            if not with_normals:
-                return A_shared, A_view, None, None, None
-            compact = self.vis_compact.reshape(BV, -1)
-            # per (subject, view) row selection; index_select is several times faster than
-            # broadcast advanced indexing on these (U, 3, C) blocks
-            dn = torch.stack([d_normals[i // V].index_select(0, compact[i]) for i in range(BV)])  # (BV, Q, 3, C)
-            n_q = torch.stack([normals_u[i // V].index_select(0, compact[i]) for i in range(BV)])  # (BV, Q, 3)
-            Rdn = R[:, None, :, 0, None] * dn[:, :, None, 0]  # (BV, Q, 3, C) = R @ dn
-            Rdn.addcmul_(R[:, None, :, 1, None], dn[:, :, None, 1]).addcmul_(R[:, None, :, 2, None], dn[:, :, None, 2])
-            Dn = torch.einsum("bjkl,bnl->bnkj", D, n_q)  # (BV, Q, 3, 3): d n_c / d angle_j
-            return A_shared, A_view, Rdn, Dn, n_q
-
-        # Normal rows.
-        A_shared, A_view, Rdn, Dn, n_vis = view_rows(index, True, self.basis_visible)
-        pts_uv, _ = project_points(torch.gather(verts_v, 1, index[..., None].expand(-1, -1, 3)), R, t, K)
-        maps = self.normal_maps.reshape(BV, 3, self.H, self.W)
-        _, grad, inside = sample_bicubic_with_gradient(maps, pts_uv)  # grad (BV, S, 3, 2)
-        # the rows normal_residuals keeps: visible, inside the image, on the map's foreground
-        valid = self.vis_valid.reshape(BV, S) & inside & map_foreground(maps, pts_uv)
-        scale = (self.weights.normals * self.view_weights.reshape(BV, 1) * self.vertex_weights.reshape(BV, S)).sqrt()
-        scale = scale * valid.to(x.dtype)  # (BV, S)
-
-        def times_grad(A: Tensor) -> Tensor:  # ∇N (BV, S, 3, 2) @ A (BV, S, 2, D) without tiny matmuls
-            out = grad[..., 0:1] * A[:, :, None, 0]
-            return out.addcmul_(grad[..., 1:2], A[:, :, None, 1])
-
-        J_n_shared = times_grad(A_shared).sub_(Rdn).mul_(scale[..., None, None])  # (BV, S, 3, C)
-        J_n_view = times_grad(A_view)
-        J_n_view[..., 0:3] -= Dn
-        J_n_view.mul_(scale[..., None, None])  # (BV, S, 3, per_view)
-
-        # Landmark rows.
-        lm_index = self.lm_index[None].expand(BV, -1)
-        A_lm_shared, A_lm_view, _, _, _ = view_rows(lm_index, False, self.basis_landmarks[None].expand(BV, -1, -1, -1))
-        lm_scale = self.weights.landmarks**0.5 * self.landmark_mask.reshape(BV, L).to(x.dtype)
-        J_z_shared = A_lm_shared * lm_scale[..., None, None]
-        J_z_view = A_lm_view * lm_scale[..., None, None]
-
-        rows_per_view = 3 * S + 2 * L
-        prior_rows = Kdim + E + (3 * V if self.fit_intrinsics else 0)
-        J = torch.zeros(B, V * rows_per_view + prior_rows, self.P, dtype=dtype, device=x.device)
-        J_n_shared, J_n_view = J_n_shared.view(B, V, S, 3, C), J_n_view.view(B, V, S, 3, self.per_view)
-        J_z_shared, J_z_view = J_z_shared.view(B, V, L, 2, C), J_z_view.view(B, V, L, 2, self.per_view)
-        for v in range(V):
-            sel = (slice(None), v)
-            r0 = v * rows_per_view
-            c0 = Kdim + E + v * self.per_view
-            block = J[:, r0 : r0 + 3 * S]
-            block[..., :C] = J_n_shared[sel].reshape(B, 3 * S, C)
-            block[..., c0 : c0 + self.per_view] = J_n_view[sel].reshape(B, 3 * S, self.per_view)
-            block = J[:, r0 + 3 * S : r0 + rows_per_view]
-            block[..., :C] = J_z_shared[sel].reshape(B, 2 * L, C)
-            block[..., c0 : c0 + self.per_view] = J_z_view[sel].reshape(B, 2 * L, self.per_view)
-        r0 = V * rows_per_view
-        w = self.weights
-        J[:, r0 : r0 + Kdim, :Kdim] = torch.diag(w.prior**0.5 / self.model.shape_std).to(dtype)
-        r0 += Kdim
-        if E:
-            J[:, r0 : r0 + E, Kdim : Kdim + E] = torch.eye(E, dtype=dtype) * w.expression_prior**0.5
-            r0 += E
+    def _view_columns(self, q: Tensor, R: Tensor, D: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+        """For model points ``q = p + t`` ``(KV, Q, 3)``: ``∂a/∂p`` ``(KV, Q, 2, 3)`` and
+        ``∂a/∂(angles, t, intrinsics)`` ``(KV, Q, 2, per_view)``."""
+        cam = q @ R.transpose(1, 2)
+        P = projection_jacobian(cam, K)  # (KV, Q, 2, 3)
+        PR = P @ R[:, None]
+        parts = [P @ _rotated(D, q), PR]
         if self.fit_intrinsics:
-            prior = self.intrinsics_prior
-            for v in range(V):
-                c0 = Kdim + E + v * self.per_view + 6
-                inv = torch.stack([1.0 / (prior[:, v, 0] * w.focal_std),
-                                   torch.full_like(prior[:, v, 0], 1.0 / w.center_std),
-                                   torch.full_like(prior[:, v, 0], 1.0 / w.center_std)], dim=-1)
-                J[:, r0 + 3 * v : r0 + 3 * v + 3, c0 : c0 + 3] = torch.diag_embed(inv).to(dtype)
+            eye = torch.eye(2, dtype=q.dtype, device=q.device).expand(q.shape[0], q.shape[1], 2, 2)
+            parts.append(torch.cat([(cam[..., :2] / cam[..., 2:3]).unsqueeze(-1), eye], dim=-1))
+        return PR, torch.cat(parts, dim=-1)
+
+    def _jacobian_parts(self, x: Tensor, dtype: torch.dtype, index: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """The Jacobian's non-zero parts: normal rows' shape columns ``(K, V, 3S, C)`` and view
+        columns ``(K, V, 3S, per_view)``, and the landmark and prior rows ``(K, 2VL + priors, P)``."""
+        g = self._geometry(x, index)
+        layout, R, t = g.layout, g.R, g.t
+        count, V, S, L, C, pv = x.shape[0], self.V, self.vis_index.shape[-1], self.L, self.C, self.per_view
+        D = euler_rotation_derivatives(g.p["angles"].reshape(-1, 3))  # (KV, 3, 3, 3)
+        flat = g.verts.reshape(-1, 3)
+        _, projector, raw = layout.rings.normal_derivatives(flat)
+
+        # Normal rows: view columns densely, shape columns as one sparse product with the basis.
+        PR, A_view = self._view_columns(flat[layout.vertex.reshape(-1, S)] + t[:, None], R, D, g.K)
+        scale = self._row_weights(index) * g.valid.to(x.dtype)  # (KV, S)
+        J_view = g.grad @ A_view  # ∇N ∂a/∂view, (KV, S, 3, per_view)
+        J_view[..., 0:3] -= _rotated(D, g.n_model)
+        J_view.mul_(scale[..., None, None])
+        T = (g.grad @ PR).mul_(scale[..., None, None]).reshape(-1, 3, 3)  # ∇N ∂a/∂p, (KVS, 3, 3)
+        projector = torch.cat([projector, projector.new_zeros(1, 3, 3)])[layout.slot.reshape(-1, S)]
+        left = (R[:, None] @ projector).mul_(-scale[..., None, None]).reshape(-1, 3, 3)  # -R (I - n nᵀ)/|s|
+        rows = layout.rows
+        values = torch.bmm(left[rows.entry], raw[rows.block])
+        values.index_add_(0, layout.diagonal, T[rows.entry[layout.diagonal]])
+        shared = rows.matrix(values.to(dtype), 3 * self.N) @ self._basis(dtype)
+
+        # Landmark and prior rows.
+        PR_lm, A_lm = self._view_columns(g.landmark_points + t[:, None], R, D, g.K)
+        lm_scale = self.weights.landmarks**0.5 * self._pick(self.landmark_mask, index).reshape(-1, L, 1, 1).to(x.dtype)
+        J_lm = ((PR_lm * lm_scale) @ self.basis_landmarks).view(count, V, 2 * L, C)
+        A_lm = (A_lm * lm_scale).view(count, V, 2 * L, pv)
+        small = torch.zeros(count, V * 2 * L, self.P, dtype=dtype, device=x.device)
+        for v in range(V):
+            small[:, 2 * L * v : 2 * L * (v + 1), :C] = J_lm[:, v]
+            small[:, 2 * L * v : 2 * L * (v + 1), C + v * pv : C + (v + 1) * pv] = A_lm[:, v]
+        small = torch.cat([small, self._pick(self.prior_jacobian, index).to(dtype)], dim=1)
+        return shared.view(count, V, 3 * S, C), J_view.to(dtype).view(count, V, 3 * S, pv), small
+
+    def jacobian(self, x: Tensor, dtype: torch.dtype | None = None, index: Tensor | None = None) -> Tensor:
+        """The analytic Jacobian ``(K, M, P)`` of :meth:`residuals`, formed in ``dtype`` (default: x's)."""
+        dtype = dtype or x.dtype
+        shared, J_view, small = self._jacobian_parts(x, dtype, self._all_is_none(index))
+        count, V, rows, C, pv = x.shape[0], self.V, shared.shape[2], self.C, self.per_view
+        J = x.new_zeros(count, V * rows + small.shape[1], self.P, dtype=dtype)
+        J[:, : V * rows, :C] = shared.reshape(count, V * rows, C)
+        for v in range(V):
+            J[:, v * rows : (v + 1) * rows, C + v * pv : C + (v + 1) * pv] = J_view[:, v]
+        J[:, V * rows :] = small
         return J
+
+    def normal_equations(self, x: Tensor, r: Tensor, dtype: torch.dtype | None = None,
+                         index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``JᵀJ`` ``(K, P, P)`` and ``Jᵀr`` ``(K, P)`` of :meth:`jacobian` and residuals ``r`` ``(K, M)``,
+        formed in ``dtype`` without the Jacobian's zero blocks (for
+        :func:`~facenormals.optim.levenberg_marquardt`'s ``normal_equations_fn``)."""
+        dtype = dtype or x.dtype
+        shared, J_view, small = self._jacobian_parts(x, dtype, self._all_is_none(index))
+        count, V, rows, C, pv = x.shape[0], self.V, shared.shape[2], self.C, self.per_view
+        r = r.to(dtype)
+        r_views, r_small = r[:, : V * rows].view(count, V, 1, rows), r[:, V * rows :].unsqueeze(1)
+        flat = shared.view(count, V * rows, C)
+        H = small.transpose(1, 2) @ small
+        H[:, :C, :C] += flat.transpose(1, 2) @ flat
+        g = (r_small @ small).squeeze(1)
+        g[:, :C] += (r[:, None, : V * rows] @ flat).squeeze(1)
+        for v in range(V):
+            cols = slice(C + v * pv, C + (v + 1) * pv)
+            cross = shared[:, v].transpose(1, 2) @ J_view[:, v]  # (K, C, per_view)
+            H[:, :C, cols] += cross
+            H[:, cols, :C] += cross.transpose(1, 2)
+            H[:, cols, cols] += J_view[:, v].transpose(1, 2) @ J_view[:, v]
+            g[:, cols] += (r_views[:, v] @ J_view[:, v]).squeeze(1)
+        return H, g
+
+    def _basis(self, dtype: torch.dtype) -> Tensor:
+        """The basis rows ``(3 N, C)`` in ``dtype``."""
+        if dtype not in self._basis_cast:
+            self._basis_cast[dtype] = self.basis_rows.to(dtype)
+        return self._basis_cast[dtype]
+
+
+@dataclass
+class _Geometry:
+    """The model and its projections at one ``x`` of the subjects ``key`` (see ``_geometry``)."""
+
+    x: Tensor
+    key: tuple[int, ...] | None
+    layout: _Layout
+    p: dict[str, Tensor]
+    verts: Tensor  # (K, N, 3)
+    R: Tensor  # (KV, 3, 3)
+    t: Tensor  # (KV, 3)
+    K: Tensor  # (KV, 3)
+    n_model: Tensor  # (KV, S, 3) ring normals of the residual vertices, model frame
+    sampled: Tensor  # (KV, S, 3) the maps at their projections
+    grad: Tensor  # (KV, S, 3, 2) and the maps' derivatives there
+    valid: Tensor  # (KV, S) inside the image and on the foreground
+    landmark_points: Tensor  # (KV, L, 3)
+    lm_uv: Tensor  # (KV, L, 2)
+
+
+def _is_plain(x: Tensor) -> bool:
+    """``x`` carries no autograd or ``torch.func`` state, so results computed from it may be reused."""
+    return not (x.requires_grad or is_functorch_wrapped_tensor(x) or fwAD.unpack_dual(x).tangent is not None)
+
+
+def _rotated(D: Tensor, q: Tensor) -> Tensor:
+    """``out[..., :, j] = D_j q`` for rotation derivatives ``D`` ``(KV, 3, 3, 3)`` and points ``(KV, Q, 3)``."""
+    out = q @ D.reshape(D.shape[0], 9, 3).transpose(1, 2)  # (KV, Q, 9): entry 3 j + k = (D_j q)_k
+    return out.view(q.shape[0], q.shape[1], 3, 3).transpose(-1, -2)
