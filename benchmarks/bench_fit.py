@@ -6,7 +6,10 @@
    and analytic Jacobian, in the same run;
 4. B = 16 subjects fitted as one batch vs 16 sequential fits.
 
-    python benchmarks/bench_fit.py [--heads 10] [--model ict]
+    python benchmarks/bench_fit.py [--heads 10] [--model ict] [--batch 16] [--threads 1]
+
+On a machine shared with other CPU-heavy jobs, ``--threads 1`` avoids OpenMP threads spinning
+against them (2 threads on 2 busy cores are several times slower than 1).
 """
 
 from __future__ import annotations
@@ -37,7 +40,10 @@ def main() -> None:
     parser.add_argument("--heads", type=int, default=10)
     parser.add_argument("--model", default="ict")
     parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     model = load_model(args.model, dtype=torch.float32)
     print(f"machine: {platform.machine()}, torch {torch.__version__} ({torch.get_num_threads()} threads); "
           f"model {model.name}: {model.num_vertices} vertices, {model.num_shape} shape components")
@@ -55,7 +61,8 @@ def main() -> None:
 
     # 2. Full fits.
     fit_head(heads[0].normal_maps, heads[0].landmarks, model, intrinsics=heads[0].intrinsics)  # warm-up
-    fits = [timed(lambda h=h: fit_head(h.normal_maps, h.landmarks, model, intrinsics=h.intrinsics)) for h in heads[: args.heads]]
+    fits = [timed(lambda h=h: fit_head(h.normal_maps, h.landmarks, model, intrinsics=h.intrinsics))
+            for h in heads[: args.heads] * 2]
     rows.append(("single-view fit incl. pre-alignment", statistics.median(t for t, _ in fits) * 1e3, "<= 150"))
     iterations = statistics.median(int(r.iterations[0]) for _, r in fits)
 
@@ -66,9 +73,11 @@ def main() -> None:
     x0 = problem.pack(torch.zeros(1, model.num_shape), pose.angles[None], pose.translation[None], h.intrinsics)
     problem.update_visibility(x0, min_facing=0.2)
     problem.update_robust_weights(x0, 0.1)
+    options = dict(max_iterations=100, ftol=1e-8, xtol=1e-8, damping=1e-4, jacobian_dtype=torch.float32)
     ours_t, ours = timed(lambda: levenberg_marquardt(
-        problem.residuals, x0, jacobian_fn=lambda z: problem.jacobian(z, torch.float32), max_iterations=100,
-        ftol=1e-8, xtol=1e-8, damping=1e-4, jacobian_dtype=torch.float32))
+        problem.residuals, x0, jacobian_fn=lambda z: problem.jacobian(z, torch.float32), **options))
+    fused_t, fused = timed(lambda: levenberg_marquardt(
+        problem.residuals, x0, normal_equations_fn=lambda z, r: problem.normal_equations(z, r, torch.float32), **options))
 
     def fun(x):
         return problem.residuals(torch.from_numpy(x).float()[None])[0].double().numpy()
@@ -78,7 +87,9 @@ def main() -> None:
 
     scipy_t, sp = timed(lambda: least_squares(fun, x0[0].double().numpy(), jac=jac, ftol=1e-8, xtol=1e-8))
     ours_cost = float(0.5 * problem.residuals(ours.x).double().square().sum())
-    rows.append((f"one LM round, facenormals ({int(ours.iterations[0])} iterations)", ours_t * 1e3, ""))
+    rows.append((f"one LM round, facenormals, jacobian_fn ({int(ours.iterations[0])} iterations)", ours_t * 1e3, ""))
+    rows.append((f"one LM round, facenormals, normal_equations_fn ({int(fused.iterations[0])} iterations)",
+                 fused_t * 1e3, ""))
     rows.append((f"one LM round, scipy least_squares trf ({sp.njev} Jacobians)", scipy_t * 1e3, ">= 10x ours"))
 
     # Analytic vs autograd Jacobian of the same residuals.
@@ -101,7 +112,8 @@ def main() -> None:
     for name, ms, target in rows:
         print(f"| {name} | {ms:.1f} | {target} |")
     print(f"\nfull fit: median {iterations} LM iterations")
-    print(f"scipy / ours on the same round: {scipy_t / ours_t:.1f}x; final energies {ours_cost:.4f} (ours) vs "
+    print(f"scipy / ours (normal_equations_fn) on the same round: {scipy_t / fused_t:.1f}x")
+    print(f"scipy / ours (jacobian_fn) on the same round: {scipy_t / ours_t:.1f}x; final energies {ours_cost:.4f} (ours) vs "
           f"{float(sp.cost):.4f} (scipy), relative difference {abs(ours_cost - sp.cost) / sp.cost:.1e}")
     print(f"batch throughput vs sequential: {seq_t / batch_t:.2f}x")
 

@@ -104,3 +104,22 @@ def test_bad_input(model, head):
         fit_head(obs.normal_maps, obs.landmarks[..., :10, :], model)
     with pytest.raises(ValueError, match="rounds"):
         fit_head(obs.normal_maps, obs.landmarks, model, rounds=0)
+
+
+def test_vertex_spacing_options(model, head):
+    obs = render_oracle_views(model, head, [15.0])
+    mean_err = p2p(model, model.mean, obs.vertices[0])
+    for spacing in (None, (2.0, 0.75)):
+        result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, vertex_spacing=spacing)
+        assert p2p(model, result.vertices[0], obs.vertices[0]) < 0.5 * mean_err
+
+
+def test_grid_subset_thins_dense_regions_only():
+    from facenormals.fitting.subsample import grid_subset
+
+    g = torch.Generator().manual_seed(0)
+    dense = torch.rand(400, 3, generator=g) * 2.0  # ~50 per unit cube
+    sparse = torch.rand(20, 3, generator=g) * 2.0 + 10.0 + 3.0 * torch.arange(20.0)[:, None]  # far apart
+    keep = grid_subset(torch.cat([dense, sparse]), 1.0)
+    assert int(keep[:400].sum()) <= 27 and keep[400:].all()
+    assert grid_subset(dense, 0.0).all()

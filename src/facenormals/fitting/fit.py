@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -114,7 +115,7 @@ def fit_head(
     initial_pose: tuple[Tensor, Tensor] | None = None,
     min_facing: float = 0.2,
     robust_scale: float | None = 0.1,
-    vertex_spacing: float | None = 0.75,
+    vertex_spacing: float | Sequence[float] | None = 0.75,
 ) -> FitResult:
     r"""Fit a morphable model to normal maps and landmarks of one or more views.
 
@@ -150,7 +151,8 @@ def fit_head(
         vertex_spacing: the normal term uses about one model vertex per cube of this many pixels
             (:func:`~facenormals.fitting.subsample.grid_subset` of the mean head, with the pixel size
             at the pre-aligned head's depth); vertices denser than the pixels add cost but little
-            information. ``None`` uses every vertex.
+            information. A sequence gives one spacing per round (the last one repeats), e.g. a coarse
+            first round; ``None`` uses every vertex.
 
     Returns:
         A :class:`FitResult`.
@@ -202,15 +204,15 @@ def fit_head(
     t_pre = time.perf_counter()
 
     # 2. Rounds of visibility + LM.
-    subset = None
-    if vertex_spacing is not None:
-        subset = grid_subset(model.mean, vertex_spacing * _pixel_size(model, angles, translation, intrinsics))
+    spacings = list(vertex_spacing) if isinstance(vertex_spacing, Sequence) else [vertex_spacing]
+    pixel = _pixel_size(model, angles, translation, intrinsics)
+    subsets = {s: None if s is None else grid_subset(model.mean, s * pixel) for s in spacings}
     problem = HeadFitProblem(model, normal_maps, landmarks, landmark_mask, intrinsics, weights,
-                             fit_intrinsics=fit_intrinsics, fit_expression=fit_expression, view_weights=view_weights,
-                             vertex_subset=subset)
+                             fit_intrinsics=fit_intrinsics, fit_expression=fit_expression, view_weights=view_weights)
     x = problem.pack(torch.zeros(B, model.num_shape, dtype=dtype, device=device), angles, translation, intrinsics)
     iterations = torch.zeros(B, dtype=torch.long, device=device)
-    for _ in range(rounds):
+    for round_ in range(rounds):
+        problem.vertex_subset = subsets[spacings[min(round_, len(spacings) - 1)]]
         visible = problem.update_visibility(x, min_facing=min_facing)
         if robust_scale is not None and weights.normals > 0:
             problem.update_robust_weights(x, robust_scale)

@@ -154,13 +154,15 @@ class Rings:
         F = p.shape[0]
         eye = torch.eye(3, dtype=p.dtype, device=p.device)
         face_projector = (eye - torch.bmm(m[:, :, None], m[:, None, :])) / c_norm[:, :, None]  # (F, 3, 3)
-        d = p[:, [2, 0, 1]] - p[:, [1, 2, 0]]  # (F, corner, 3): the edge opposite each corner
-        zero = torch.zeros_like(d[..., 0])
-        skew = torch.stack([zero, -d[..., 2], d[..., 1], d[..., 2], zero, -d[..., 0], -d[..., 1], d[..., 0], zero],
-                           dim=-1)  # (F, corner, 9): [d]× row-major
-        skew = skew.view(F, 3, 3, 3).transpose(1, 2).reshape(F, 3, 9)  # (F, row, corner · column)
-        coef = torch.bmm(face_projector, skew).view(F, 3, 3, 3).transpose(1, 2)  # (F, corner, 3, 3)
-        raw = (block_sum @ coef.reshape(3 * F, 9)).view(-1, 3, 3)
+        d = p.roll(1, 1) - p.roll(-1, 1)  # (F, corner, 3): p_{k+2} - p_{k+1}, the edge opposite corner k
+        x, y, z = d.unbind(-1)
+        zero = torch.zeros_like(x)
+        skew = torch.stack([torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1),
+                            torch.stack([-y, x, zero], -1)], dim=2)  # (F, corner, 3, 3) = [d]×
+        # the corner coefficient is P [d]× / |c| = -([d]× P / |c|)ᵀ (P and [d]×ᵀ = -[d]×): the right-hand
+        # form keeps the rows (face, corner) contiguous for the summing product
+        coef_t = torch.bmm(skew.view(F, 9, 3), face_projector).view(3 * F, 9)
+        raw = -(block_sum @ coef_t).view(-1, 3, 3).transpose(1, 2)
         projector = (eye - torch.bmm(n[:, :, None], n[:, None, :])) / s_norm[:, :, None]
         return n, projector, raw
 
