@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Sequence
 
@@ -141,11 +142,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     values = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
     config = TrainConfig(**values)
     summary = train(config, progress=not args.quiet)
+    if int(os.environ.get("RANK", "0")) != 0:  # under torchrun only rank 0 reports and exports
+        return 0
     print(f"{summary.checkpoint}: step {summary.step}/{config.steps}, {summary.samples_seen} samples seen "
           f"(stopped by {summary.stopped_by}, {summary.seconds / 60:.1f} min)")
     if summary.metrics is not None:
         print(f"held out: {summary.metrics}")
-    if args.export and int(__import__("os").environ.get("RANK", "0")) == 0:
+    if args.export:
         path = export_weights(summary.checkpoint, args.export)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
     return 0

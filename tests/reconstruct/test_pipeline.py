@@ -150,3 +150,18 @@ def test_cli_rejects_a_box_count_mismatch(tmp_path, random_weights):
     result = _cli(tmp_path / "a.jpg", tmp_path / "b.jpg", "-o", tmp_path, "--box", "1,2,3,4",
                   "--weights", random_weights)
     assert result.returncode != 0 and "--box" in result.stderr
+
+
+def test_cuda_without_cuda_is_a_clear_error(tmp_path, random_weights):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    result = _cli(tmp_path / "a.jpg", "-o", tmp_path, "--device", "cuda", "--weights", random_weights)
+    assert result.returncode != 0 and "no CUDA device" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_angles_are_wrapped_for_params_json():
+    from facenormals.reconstruct.pipeline import _wrap_degrees
+
+    assert _wrap_degrees(np.radians(191.0)) == pytest.approx(-169.0)
+    assert _wrap_degrees(np.radians(-30.0)) == pytest.approx(-30.0)
+    assert _wrap_degrees(np.pi) == pytest.approx(180.0)

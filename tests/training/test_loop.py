@@ -99,3 +99,31 @@ def test_epoch_sampler_is_a_deterministic_rank_partition_that_resumes():
     resumed = [i for _, i in zip(range(5), iter(_EpochSampler(size, 5, 0, world, start=7)))]
     assert resumed == full[7:12]
     assert full[:5] != full[5:10]  # a new permutation per epoch
+
+
+def test_a_killed_run_resumes_from_its_checkpoint_and_drops_repeated_log_rows(tmp_path):
+    data = TinyHeads(16)
+    config = _config(tmp_path, steps=4, log_every=1, checkpoint_every=2)
+    train(config, data, progress=False)
+    log = tmp_path / "run" / "log.csv"
+    # pretend the process died after logging steps 3-4 but before a checkpoint at step 2 was superseded
+    state = load_checkpoint(tmp_path / "run" / "last.pt")
+    state["step"], state["samples_seen"] = 2, 8
+    torch.save(state, tmp_path / "run" / "last.pt")
+    train(_config(tmp_path, steps=4, log_every=1, checkpoint_every=2), data, progress=False)
+    steps = [int(r["step"]) for r in csv.DictReader(log.open())]
+    assert steps == [1, 2, 3, 4]
+
+
+def test_dataloader_workers_ignore_stop_signals():
+    import signal
+
+    from facenormals.training.loop import _ignore_stop_signals
+
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        _ignore_stop_signals(0)
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)

@@ -66,6 +66,9 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None, 
 
     if not paths:
         raise ValueError("paths: expected at least one image, got none")
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device: {device!r} requested but this torch build ({torch.__version__}) has no CUDA "
+                         "device; use --device cpu")
     boxes = list(boxes) if boxes is not None else [None] * len(paths)
     if len(boxes) != len(paths):
         raise ValueError(f"boxes: expected one per image ({len(paths)}), got {len(boxes)}")

@@ -130,6 +130,11 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     start = time.perf_counter()
     fit = fit_head(maps.normal_maps.to(model.mean.dtype), landmarks, model, intrinsics=intrinsics, **fit_options)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
+    for v in range(V):
+        f_v, rms = float(fit.intrinsics[0, v, 0]), float(fit.landmark_rms_px[0, v])
+        if not (0.25 * focal <= f_v <= 4.0 * focal) or not rms <= 0.05 * S:
+            log(f"warning: view {v} looks unreliable (focal {f_v:.0f} px against the prior {focal:.0f} px, "
+                f"landmark RMS {rms:.1f} px): check view{v}_overlay.png and view{v}_landmarks.png")
     return maps, fit
 
 
@@ -176,6 +181,12 @@ def landmark_map_image(crop: np.ndarray, landmark_maps: Tensor, scale: int = 4) 
     return cv2.resize(out, (out.shape[1] * scale, out.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
 
 
+def _wrap_degrees(radians: float) -> float:
+    """An angle in degrees in (-180, 180]."""
+    degrees = math.degrees(radians) % 360.0
+    return degrees - 360.0 if degrees > 180.0 else degrees
+
+
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]:
     """Write ``head.ply``, ``head.obj``, ``params.json`` and per view an overlay, N and Z pictures.
 
@@ -214,8 +225,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
             "image": view.path,
             "image_size": list(view.image_size),
             "crop_box_xy_side": [x0, y0, side],
-            "angles_deg": {"roll": math.degrees(fit.angles[0, v, 0]), "pitch": math.degrees(fit.angles[0, v, 1]),
-                           "yaw": math.degrees(fit.angles[0, v, 2])},
+            "angles_deg": dict(zip(("roll", "pitch", "yaw"), (_wrap_degrees(a) for a in fit.angles[0, v].tolist()))),
             "rotation": fit.rotation[0, v].tolist(),
             "translation_mm": fit.translation[0, v].tolist(),
             "intrinsics_crop_px": {"f": f, "u0": u0, "v0": v0},

@@ -93,6 +93,26 @@ def _append_csv(path: Path, fields: list[str], row: dict) -> None:
         writer.writerow({k: row[k] for k in fields})
 
 
+def _truncate_csv(path: Path, step: int) -> None:
+    """Drop the rows logged after ``step`` (a run that died after its last checkpoint repeats them)."""
+    if not path.exists():
+        return
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    kept = [r for r in rows if int(r["step"]) <= step]
+    if len(kept) != len(rows):
+        with path.open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(kept)
+
+
+def _ignore_stop_signals(_worker_id: int) -> None:
+    """DataLoader workers leave SIGINT/SIGTERM to the training process, which stops cleanly."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def _float_outputs(out: UNetOutput) -> UNetOutput:
     return UNetOutput(*(t.float() for t in out))
 
@@ -148,6 +168,9 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         ema.load_state_dict(state["ema"])
         optimizer.load_state_dict(state["optimizer"])
         step, samples_seen = int(state["step"]), int(state["samples_seen"])
+        if ctx.is_main:
+            for name in ("log.csv", "eval.csv"):
+                _truncate_csv(out / name, step)
     model = net
     if ctx.distributed:
         model = torch.nn.parallel.DistributedDataParallel(
@@ -157,7 +180,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     sampler = _EpochSampler(len(dataset), config.seed, ctx.rank, ctx.world_size, start=per_rank_seen)
     loader = DataLoader(dataset, batch_size=config.batch_size, sampler=sampler, num_workers=config.workers,
                         pin_memory=ctx.device.type == "cuda", drop_last=True,
-                        persistent_workers=config.workers > 0)
+                        persistent_workers=config.workers > 0, worker_init_fn=_ignore_stop_signals)
     augment = PhotoAugmentation().to(ctx.device)
 
     def checkpoint() -> None:
