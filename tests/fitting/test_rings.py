@@ -1,0 +1,41 @@
+"""The ring-normal derivative blocks equal the forward-mode derivatives of the whole mesh."""
+
+import torch
+
+from facenormals.fitting.rings import Rings
+from facenormals.mesh import VertexNormalsJacobian, vertex_normals
+from facenormals.models import builtin_head_model
+
+
+def test_blocks_times_basis_equal_the_normal_jacobian():
+    model = builtin_head_model(dtype=torch.float64)
+    y = torch.randn(2, model.num_shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    verts = model(y)
+    N = verts.shape[1]
+    sets = [torch.arange(0, N, 7), torch.arange(3, N, 5)]  # a different subset per batch element
+    rings = Rings.cat([Rings.build(model.faces, s, N) for s in sets], N)
+    normals, blocks = rings.normals_and_blocks(verts.reshape(-1, 3))
+    flat = torch.cat([s + b * N for b, s in enumerate(sets)])
+    torch.testing.assert_close(normals, vertex_normals(verts, model.faces).reshape(-1, 3)[flat])
+    torch.testing.assert_close(rings.normals(verts.reshape(-1, 3)), normals)
+    basis = model.shape_basis.permute(1, 2, 0)  # (N, 3, K)
+    dn = torch.zeros(rings.num_slots, 3, model.num_shape, dtype=torch.float64)
+    dn.index_add_(0, rings.block_slot, blocks @ basis[rings.block_vertex % N])
+    reference = VertexNormalsJacobian(model.faces, model.shape_basis)(verts)[1]
+    torch.testing.assert_close(dn, reference.reshape(-1, 3, model.num_shape)[flat], rtol=1e-10, atol=1e-12)
+
+
+def test_row_structure_is_the_dense_block_matrix():
+    model = builtin_head_model(dtype=torch.float64)
+    N = model.num_vertices
+    rings = Rings.build(model.faces, torch.tensor([5, 40, 41]), N)
+    entries = torch.tensor([2, 3, 0])  # slot 2, an empty row block, slot 0
+    rows = rings.row_structure(entries, N)
+    values = torch.randn(rows.entry.shape[0], 3, 3, dtype=torch.float64)
+    dense = torch.zeros(9, 3 * N, dtype=torch.float64)
+    for t, (e, b) in enumerate(zip(rows.entry.tolist(), rows.block.tolist())):
+        assert rings.block_slot[b] == entries[e]
+        g = int(rings.block_vertex[b])
+        dense[3 * e : 3 * e + 3, 3 * g : 3 * g + 3] += values[t]
+    torch.testing.assert_close(rows.matrix(values, 3 * N).to_dense(), dense)
+    assert dense[3:6].abs().sum() == 0
