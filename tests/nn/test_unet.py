@@ -312,3 +312,26 @@ def test_safe_normalisation_of_a_zero_output():
     out.normals.sum().backward()
     assert torch.isfinite(x.grad).all()
     assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+
+
+def test_landmark_peak_weight_matches_a_naive_loop():
+    g = torch.Generator().manual_seed(0)
+    pred = torch.rand(2, 3, 4, 5, generator=g)
+    target = torch.zeros(2, 3, 4, 5)
+    target[0, 1, 2, 3], target[1, 2, 0, 0] = 1.0, 0.5
+    out = UNetOutput(torch.nn.functional.normalize(torch.randn(2, 3, 4, 5, generator=g), dim=1), pred,
+                     torch.zeros(2, 1, 4, 5))
+    normals = torch.zeros(2, 3, 4, 5)
+    alpha = 7.0
+    _, terms = normal_landmark_loss(out, normals, target, landmark_peak_weight=alpha)
+    expected = 0.0
+    for b in range(2):
+        for c in range(3):
+            for i in range(4):
+                for j in range(5):
+                    expected += (1 + alpha * float(target[b, c, i, j])) * float(pred[b, c, i, j] - target[b, c, i, j]) ** 2
+    assert float(terms["landmarks"]) == pytest.approx(expected / pred.numel(), rel=1e-6)
+    _, plain = normal_landmark_loss(out, normals, target)
+    assert float(plain["landmarks"]) == pytest.approx(float(((pred - target) ** 2).mean()), rel=1e-6)
+    with pytest.raises(ValueError, match="landmark_peak_weight"):
+        normal_landmark_loss(out, normals, target, landmark_peak_weight=-1.0)

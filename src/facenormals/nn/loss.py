@@ -20,6 +20,7 @@ def normal_landmark_loss(
     foreground_gt: Tensor | None = None,
     landmark_weight: float = 1.0,
     foreground_weight: float = 1.0,
+    landmark_peak_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     r"""The paper's squared-L2 loss :math:`L_N + L_Z`, plus a foreground term.
 
@@ -27,11 +28,14 @@ def normal_landmark_loss(
 
         L = L_N + w_Z L_Z + w_F L_F, \qquad
         L_N = \frac{1}{|\Omega|} \sum_{p \in \Omega} \lVert \hat n_p - n_p \rVert^2, \qquad
-        L_Z = \operatorname{mean} (\hat Z - Z)^2,
+        L_Z = \operatorname{mean}\, (1 + \alpha Z) (\hat Z - Z)^2,
 
     where :math:`\Omega` is the ground-truth foreground over the whole batch (``foreground_gt >
     0.5`` or, when ``foreground_gt`` is ``None``, the pixels with :math:`\lVert n_p \rVert > 0.5`,
-    see ``docs/conventions.md``) and :math:`L_Z` averages over all ``B * L * H * W`` entries.
+    see ``docs/conventions.md``) and :math:`L_Z` averages over all ``B * L * H * W`` entries. With
+    :math:`\alpha` = ``landmark_peak_weight`` = 0 it is the paper's plain squared error; a positive
+    :math:`\alpha` weights the few pixels under the landmark Gaussians up, against the mass of
+    zero pixels that otherwise teach the network to predict empty maps for a long time.
     :math:`L_N` is 0 when the batch has no foreground pixel, :math:`L_Z` when ``L = 0``.
 
     :math:`L_F` is the mean binary cross-entropy between ``output.foreground_logits`` and the
@@ -47,6 +51,7 @@ def normal_landmark_loss(
             from ``normals_gt`` when ``None``. It is treated as a constant (no gradient).
         landmark_weight: :math:`w_Z`.
         foreground_weight: :math:`w_F`.
+        landmark_peak_weight: :math:`\alpha`, the extra weight of pixels under the landmark Gaussians.
 
     Returns:
         ``(total, terms)``: the scalar loss and the unweighted terms ``{"normals": L_N,
@@ -86,6 +91,7 @@ def normal_landmark_loss(
         check_floating(x, name)
     landmark_weight = check_nonnegative(landmark_weight, "landmark_weight")
     foreground_weight = check_nonnegative(foreground_weight, "foreground_weight")
+    landmark_peak_weight = check_nonnegative(landmark_peak_weight, "landmark_peak_weight")
 
     normals = output.normals
     if foreground_gt is None:
@@ -102,7 +108,10 @@ def normal_landmark_loss(
     sq_err = ((normals - normals_gt) ** 2).sum(dim=1, keepdim=True)
     loss_normals = (sq_err * mask_f).sum() / mask_f.sum().clamp(min=1.0)
     if landmarks_gt.numel() > 0:
-        loss_landmarks = F.mse_loss(output.landmarks, landmarks_gt)
+        sq = (output.landmarks - landmarks_gt) ** 2
+        if landmark_peak_weight > 0:
+            sq = sq * (1.0 + landmark_peak_weight * landmarks_gt.detach())
+        loss_landmarks = sq.mean()
     else:  # L = 0: mse_loss of empty tensors would be NaN
         loss_landmarks = (output.landmarks.sum() - landmarks_gt.sum()) * 0.0
     loss_foreground = F.binary_cross_entropy_with_logits(output.foreground_logits, mask_f)

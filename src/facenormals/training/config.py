@@ -28,7 +28,10 @@ class TrainConfig:
             exported (an "anytime" model: good even if the run is stopped early).
         landmark_weight: :math:`w_Z` of the loss. The paper's :math:`L_N + L_Z` sums the two
             unweighted; with :math:`L_Z` averaged over all ``L·H·W`` entries, most of them zero,
-            :math:`L_Z` is ~100x smaller than :math:`L_N` at the start, so it is scaled up.
+            :math:`L_Z` is ~1000x smaller than :math:`L_N`, so it is scaled up.
+        landmark_peak_weight: :math:`\alpha` of :func:`~facenormals.nn.normal_landmark_loss`: pixels
+            under the landmark Gaussians weigh ``1 + α·Z`` (0: the paper's plain squared error, which
+            learned nothing but empty maps in the first 2,000 steps of our CPU run).
         foreground_weight: weight of the foreground cross-entropy (our addition).
         sigma: landmark Gaussian standard deviation in pixels.
         workers: DataLoader worker processes per training process.
@@ -53,7 +56,8 @@ class TrainConfig:
     min_lr_ratio: float = 0.05
     weight_decay: float = 1e-4
     ema_decay: float = 0.999
-    landmark_weight: float = 100.0
+    landmark_weight: float = 1000.0
+    landmark_peak_weight: float = 200.0
     foreground_weight: float = 1.0
     sigma: float = 1.5
     workers: int = 1
@@ -82,7 +86,7 @@ class TrainConfig:
         for name in ("lr", "sigma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: expected a positive value, got {getattr(self, name)!r}")
-        for name in ("weight_decay", "landmark_weight", "foreground_weight"):
+        for name in ("weight_decay", "landmark_weight", "landmark_peak_weight", "foreground_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name}: expected a non-negative value, got {getattr(self, name)!r}")
         for name in ("ema_decay", "min_lr_ratio"):

@@ -239,7 +239,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                                 enabled=autocast_dtype is not None):
                 prediction = model(images)
             loss, terms = normal_landmark_loss(_float_outputs(prediction), normals, maps, foreground,
-                                               config.landmark_weight, config.foreground_weight)
+                                               config.landmark_weight, config.foreground_weight,
+                                               config.landmark_peak_weight)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"step {step}: the loss is {float(loss)}; lower --lr "
                                          f"or resume from the last checkpoint {last}")
