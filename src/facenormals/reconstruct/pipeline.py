@@ -78,8 +78,11 @@ class NetworkMaps:
 
 
 @torch.no_grad()
-def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float = 0.1) -> NetworkMaps:
+def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None = None) -> NetworkMaps:
     """Run the network on ``(V, 3, S, S)`` crops in ``[0, 1]`` and decode its landmark maps.
+
+    A landmark is detected where its map's peak exceeds ``threshold`` (default: the threshold
+    calibrated for the network, see :func:`~facenormals.training.calibrate_landmark_threshold`).
 
     Example:
         >>> net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
@@ -87,6 +90,10 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float = 0.1)
         >>> maps.normal_maps.shape, maps.landmarks.shape
         (torch.Size([2, 3, 16, 16]), torch.Size([2, 24, 2]))
     """
+    from facenormals.training.metrics import landmark_threshold
+
+    if threshold is None:
+        threshold = landmark_threshold(net)
     start = time.perf_counter()
     device = next(net.parameters()).device
     out = net(crops.to(device=device, dtype=next(net.parameters()).dtype))

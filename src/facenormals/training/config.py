@@ -28,7 +28,8 @@ class TrainConfig:
             exported (an "anytime" model: good even if the run is stopped early).
         landmark_weight: :math:`w_Z` of the loss. The paper's :math:`L_N + L_Z` sums the two
             unweighted; with :math:`L_Z` averaged over all ``L·H·W`` entries, most of them zero,
-            :math:`L_Z` is ~1000x smaller than :math:`L_N`, so it is scaled up.
+            :math:`L_Z` is orders of magnitude smaller than :math:`L_N`, so it is scaled up (100
+            with ``landmark_peak_weight = 200`` gives the two terms similar magnitudes early on).
         landmark_peak_weight: :math:`\alpha` of :func:`~facenormals.nn.normal_landmark_loss`: pixels
             under the landmark Gaussians weigh ``1 + α·Z`` (0: the paper's plain squared error, which
             learned nothing but empty maps in the first 2,000 steps of our CPU run).
@@ -56,7 +57,7 @@ class TrainConfig:
     min_lr_ratio: float = 0.05
     weight_decay: float = 1e-4
     ema_decay: float = 0.999
-    landmark_weight: float = 1000.0
+    landmark_weight: float = 100.0
     landmark_peak_weight: float = 200.0
     foreground_weight: float = 1.0
     sigma: float = 1.5

@@ -13,7 +13,15 @@ from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.nn.unet import NormalLandmarkUNet
 
-__all__ = ["NetworkMetrics", "evaluate_network", "normal_angles"]
+__all__ = ["NetworkMetrics", "calibrate_landmark_threshold", "evaluate_network", "landmark_threshold", "normal_angles"]
+
+#: Detection threshold of landmark map peaks when a network carries no calibrated one.
+DEFAULT_LANDMARK_THRESHOLD = 0.1
+
+
+def landmark_threshold(net: torch.nn.Module) -> float:
+    """The network's calibrated landmark detection threshold (``metadata["landmark_threshold"]``), else 0.1."""
+    return float(getattr(net, "metadata", {}).get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD))
 
 
 @dataclass
@@ -74,7 +82,7 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
 
 @torch.no_grad()
 def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
-                     max_samples: int | None = None, threshold: float = 0.1, workers: int = 0,
+                     max_samples: int | None = None, threshold: float | None = None, workers: int = 0,
                      device: str | torch.device | None = None) -> NetworkMetrics:
     """Score ``net`` on a dataset of :class:`~facenormals.data.SyntheticHeadDataset` items.
 
@@ -84,10 +92,13 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
             ``landmark_visible``.
         batch_size: images per forward pass.
         max_samples: score only the first ``max_samples`` items.
-        threshold: landmark detection threshold of :func:`~facenormals.data.landmarks_from_maps`.
+        threshold: landmark detection threshold of :func:`~facenormals.data.landmarks_from_maps`
+            (default: the network's calibrated one, :func:`landmark_threshold`).
         workers: DataLoader workers.
         device: where to run (default: the network's device).
     """
+    if threshold is None:
+        threshold = landmark_threshold(net)
     if max_samples is not None:
         dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
     if len(dataset) == 0:
@@ -127,3 +138,35 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         visibility_accuracy=agree / max(total, 1),
         foreground_iou=inter / max(union, 1),
     )
+
+
+@torch.no_grad()
+def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
+                                 max_samples: int | None = 512,
+                                 candidates: Tensor | None = None) -> tuple[float, float]:
+    """The peak threshold that best separates visible from hidden landmarks on ``dataset``.
+
+    Use samples the network will not be scored on (e.g. training samples): the threshold is then
+    stored with the weights (``export_weights(..., metadata={"landmark_threshold": t})``) and used
+    by :func:`evaluate_network` and :func:`~facenormals.reconstruct.predict_maps`.
+
+    Returns:
+        ``(threshold, accuracy)``: the candidate with the most correct visibility decisions.
+    """
+    if max_samples is not None:
+        dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
+    if candidates is None:
+        candidates = torch.linspace(0.05, 0.95, 37)
+    was_training = net.training
+    net.eval()
+    device = next(net.parameters()).device
+    peaks, visible = [], []
+    for batch in DataLoader(dataset, batch_size=batch_size):
+        maps = net(batch["image"].to(device)).landmarks.float()
+        peaks.append(maps.flatten(2).amax(-1).cpu())
+        visible.append(batch["landmark_visible"])
+    net.train(was_training)
+    peak, vis = torch.cat(peaks), torch.cat(visible)
+    accuracy = torch.stack([((peak > t) == vis).float().mean() for t in candidates])
+    best = int(accuracy.argmax())
+    return float(candidates[best]), float(accuracy[best])

@@ -1,0 +1,62 @@
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from facenormals.data import landmark_maps
+from facenormals.nn import UNetOutput
+from facenormals.training import calibrate_landmark_threshold, evaluate_network, landmark_threshold, normal_angles
+
+from .conftest import TinyHeads
+
+
+class Cheat(nn.Module):
+    """Looks up the true maps of the sample whose image it is given; optional landmark shift and gain."""
+
+    def __init__(self, data, shift=(0.0, 0.0), gain=1.0, floor=0.0):
+        super().__init__()
+        self.p = nn.Parameter(torch.zeros(()))
+        self.data, self.shift, self.gain, self.floor = data, torch.tensor(shift), gain, floor
+
+    def forward(self, images):
+        items = [next(d for d in self.data.items if torch.equal(d["image"], im)) for im in images]
+        normals = torch.stack([d["normals"] for d in items])
+        fg = torch.stack([d["foreground"] for d in items])
+        normals = torch.where(fg, normals, torch.tensor([0.0, 0.0, -1.0]).view(3, 1, 1))
+        pts = torch.stack([d["landmarks"] for d in items]) + self.shift
+        vis = torch.stack([d["landmark_visible"] for d in items])
+        maps = landmark_maps(pts, vis, images.shape[-2:]) * self.gain + self.floor
+        return UNetOutput(normals, maps, fg.float() * 20 - 10)
+
+
+def test_normal_angles_against_numpy():
+    g = torch.Generator().manual_seed(0)
+    a = torch.nn.functional.normalize(torch.randn(2, 3, 4, 5, generator=g), dim=1)
+    b = torch.nn.functional.normalize(torch.randn(2, 3, 4, 5, generator=g), dim=1)
+    mask = torch.rand(2, 1, 4, 5, generator=g) > 0.5
+    got = normal_angles(a, b, mask)
+    an, bn, m = a.numpy(), b.numpy(), mask.numpy()[:, 0]
+    ref = [math.degrees(math.acos(np.clip(np.dot(an[i, :, r, c], bn[i, :, r, c]), -1, 1)))
+           for i in range(2) for r in range(4) for c in range(5) if m[i, r, c]]
+    np.testing.assert_allclose(got.numpy(), ref, atol=1e-3)
+
+
+def test_perfect_network_scores_perfectly_and_a_shift_shows():
+    data = TinyHeads(6)
+    m = evaluate_network(Cheat(data), data, batch_size=4)
+    assert m.normal_mean_deg < 0.05 and m.landmark_median_px < 0.05 and m.visibility_accuracy == 1.0
+    assert m.foreground_iou == 1.0
+    shifted = evaluate_network(Cheat(data, shift=(3.0, 4.0)), data, batch_size=4)
+    assert abs(shifted.landmark_median_px - 5.0) < 0.1  # points near the border are clamped: the median
+
+
+def test_calibrated_threshold_is_stored_and_used():
+    data = TinyHeads(6)
+    hazy = Cheat(data, gain=0.6, floor=0.3)  # every map exceeds 0.3, visible peaks reach 0.9
+    assert evaluate_network(hazy, data, threshold=0.1).visibility_accuracy < 0.9
+    threshold, accuracy = calibrate_landmark_threshold(hazy, data)
+    assert 0.3 < threshold < 0.9 and accuracy == 1.0
+    hazy.metadata = {"landmark_threshold": threshold}
+    assert landmark_threshold(hazy) == threshold
+    assert evaluate_network(hazy, data).visibility_accuracy == 1.0
