@@ -13,7 +13,7 @@ def readme_commands() -> list[str]:
 
 def test_readme_starts_with_the_two_commands():
     main_job, tests = readme_commands()
-    assert "facenormals demo" in main_job and "python -m pytest" in tests
+    assert "facenormals reconstruct examples/data/astronaut.jpg" in main_job and "python -m pytest" in tests
     for command in (main_job, tests):
         # torch is pinned to the local CPU build before the package, so pip never resolves CUDA wheels
         assert command.index("pip install -q torch==2.13.0") < command.index("pip install -q -e ")
@@ -21,3 +21,9 @@ def test_readme_starts_with_the_two_commands():
 
 def test_ci_runs_the_readme_test_command():
     assert readme_commands()[1] in (ROOT / ".ci" / "run").read_text()
+
+
+def test_the_main_job_photo_is_bundled():
+    main_job = readme_commands()[0]
+    photo = re.search(r"facenormals reconstruct (\S+)", main_job).group(1)
+    assert (ROOT / photo).is_file()

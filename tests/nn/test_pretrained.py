@@ -1,0 +1,51 @@
+"""The weights shipped in the package: present, small, loadable, and a working network."""
+
+import pytest
+import torch
+
+from facenormals.nn import NormalLandmarkUNet, load_weights, pretrained_weights_path
+
+
+def test_shipped_weights_are_small_and_load():
+    path = pretrained_weights_path()
+    assert path.is_file(), f"{path} is missing from the package"
+    assert path.stat().st_size <= 20e6
+    net = load_weights()
+    assert isinstance(net, NormalLandmarkUNet) and not net.training
+    assert net.metadata["samples_seen"] >= 60_000
+    with torch.no_grad():
+        out = net(torch.rand(2, 3, 128, 128))
+    assert out.normals.shape == (2, 3, 128, 128) and out.landmarks.shape == (2, 24, 128, 128)
+    torch.testing.assert_close(out.normals.norm(dim=1), torch.ones(2, 128, 128))
+
+
+def test_shipped_network_finds_the_example_face():
+    """On the bundled photo the network finds a head in the middle of the crop and most landmarks."""
+    from pathlib import Path
+
+    from facenormals.reconstruct import predict_maps, prepare_view
+
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    view = prepare_view(photo)
+    maps = predict_maps(load_weights(), torch.from_numpy(view.crop).permute(2, 0, 1)[None].float() / 255.0)
+    foreground = maps.normal_maps.norm(dim=1) > 0.5
+    assert foreground[0, 64, 64] and 0.15 < float(foreground.float().mean()) < 0.9
+    assert int(maps.found.sum()) >= 12
+    names = __import__("facenormals").LANDMARK_NAMES
+    nose = maps.landmarks[0, names.index("nose_tip")]
+    assert 40 < float(nose[0]) < 88 and 40 < float(nose[1]) < 100  # the nose tip is near the crop centre
+
+
+def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
+    from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    path = tmp_path / "w.pt"
+    torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION,
+                "architecture": {"base_channels": 8, "depth": 2, "num_landmarks": 24},
+                "state_dict": net.state_dict(), "metadata": {}}, path)
+    with pytest.raises(ValueError, match="w.pt: weights do not match"):
+        load_weights(path)
+    torch.save({"format": "something else"}, path)
+    with pytest.raises(ValueError, match="not a facenormals network weight file"):
+        load_weights(path)
