@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -12,6 +12,9 @@ import torch
 from facenormals.reconstruct.detect import NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
 from facenormals.reconstruct.pipeline import PhotoView, Reconstruction, reconstruct_views, write_reconstruction
+
+if TYPE_CHECKING:
+    from facenormals.models import MorphableModel
 
 __all__ = ["prepare_view", "reconstruct_photos"]
 
@@ -41,9 +44,10 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
     return PhotoView(crop=crop_square(image, crop_box, size), box=crop_box, image_size=image.shape[:2], path=str(path))
 
 
-def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None, model="auto", weights=None,
+def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
+                       model: "MorphableModel | str" = "auto", weights: str | Path | None = None,
                        device: str = "cpu", boxes: Sequence | None = None,
-                       log: Callable[[str], None] = print, **fit_options) -> Reconstruction:
+                       log: Callable[[str], None] = print, **fit_options: Any) -> Reconstruction:
     """Reconstruct one head from one or more photos of a person and write the results.
 
     All photos are read and their faces found before anything is computed or written, so a bad

@@ -16,7 +16,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -112,7 +112,7 @@ def _landmark_channels(model: MorphableModel) -> list[int]:
 
 def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableModel,
                       focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
-                      **fit_options) -> tuple[NetworkMaps, FitResult]:
+                      **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
     """Predict the maps of ``V`` crops of one person and fit one shared head to all of them.
 
     Args:
