@@ -149,7 +149,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if summary.metrics is not None:
         print(f"held out: {summary.metrics}")
     if args.export:
-        path = export_weights(summary.checkpoint, args.export)
+        from torch.utils.data import Subset
+
+        from facenormals.data import SyntheticHeadDataset
+
+        data = SyntheticHeadDataset(config.data, with_landmark_maps=False)
+        tail = Subset(data, range(max(0, len(data) - 1000), len(data)))  # threshold from training samples
+        path = export_weights(summary.checkpoint, args.export, calibration_data=tail)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
     return 0
 

@@ -77,6 +77,9 @@ def test_export_weights_round_trip(tmp_path):
     for key, value in net.state_dict().items():
         torch.testing.assert_close(value, ema[key].half().float())
     assert net.metadata["note"] == "test" and net.metadata["step"] == 2
+    calibrated = load_weights(export_weights(summary.checkpoint, tmp_path / "c.pt", calibration_data=TinyHeads(8)))
+    assert 0.05 <= calibrated.metadata["landmark_threshold"] <= 0.95
+    assert calibrated.metadata["landmark_threshold_samples"] == 8
 
 
 def test_bad_checkpoint_and_weight_files_name_the_file(tmp_path):

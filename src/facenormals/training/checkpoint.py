@@ -45,7 +45,8 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 
 
 def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True,
-                   dtype: torch.dtype = torch.float16, metadata: dict | None = None) -> Path:
+                   dtype: torch.dtype = torch.float16, metadata: dict | None = None,
+                   calibration_data=None) -> Path:
     """Turn a training checkpoint into a weight file for :func:`~facenormals.nn.load_weights`.
 
     Args:
@@ -56,6 +57,9 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
         dtype: storage dtype of floating tensors (float16 halves the file; weights are cast back
             to float32 when loaded).
         metadata: extra JSON-able facts to store (metrics, data, hardware).
+        calibration_data: optional dataset (e.g. training samples) on which the landmark detection
+            threshold is calibrated (:func:`~facenormals.training.calibrate_landmark_threshold`)
+            and stored as ``metadata["landmark_threshold"]``.
 
     Returns:
         ``out``.
@@ -73,4 +77,13 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
         "metadata": {"step": state["step"], "samples_seen": state["samples_seen"], "ema": use_ema,
                      "train_config": config, **(metadata or {})},
     }
-    return save_checkpoint(out, payload)
+    path = save_checkpoint(out, payload)
+    if calibration_data is not None:
+        from facenormals.nn import load_weights
+        from facenormals.training.metrics import calibrate_landmark_threshold
+
+        threshold, accuracy = calibrate_landmark_threshold(load_weights(path), calibration_data, max_samples=None)
+        payload["metadata"].update(landmark_threshold=threshold, landmark_threshold_accuracy=accuracy,
+                                   landmark_threshold_samples=len(calibration_data))
+        path = save_checkpoint(out, payload)
+    return path
