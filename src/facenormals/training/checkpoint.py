@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import torch
+from torch.utils.data import Dataset
 
 from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
 
@@ -46,7 +47,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 
 def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True,
                    dtype: torch.dtype = torch.float16, metadata: dict | None = None,
-                   calibration_data=None) -> Path:
+                   calibration_data: Dataset | None = None) -> Path:
     """Turn a training checkpoint into a weight file for :func:`~facenormals.nn.load_weights`.
 
     Args:
