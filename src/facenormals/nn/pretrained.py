@@ -14,6 +14,13 @@ __all__ = ["load_weights", "pretrained_weights_path"]
 WEIGHTS_FORMAT = "facenormals-unet"
 WEIGHTS_VERSION = 1
 _SHIPPED = "normal_landmark_unet.pt"
+#: Detection threshold of landmark map peaks when a network carries no calibrated one.
+DEFAULT_LANDMARK_THRESHOLD = 0.1
+
+
+def landmark_threshold(net: torch.nn.Module) -> float:
+    """The network's calibrated landmark detection threshold (``metadata["landmark_threshold"]``), else 0.1."""
+    return float(getattr(net, "metadata", {}).get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD))
 
 
 def pretrained_weights_path() -> Path:

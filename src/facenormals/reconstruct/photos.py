@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 import torch
 
-from facenormals.reconstruct.detect import NoFaceError, crop_square, detect_faces, head_crop_box
+from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
 from facenormals.reconstruct.pipeline import PhotoView, Reconstruction, reconstruct_views, write_reconstruction
 
@@ -26,8 +26,6 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
         ImageReadError: the file is missing or not an image.
         NoFaceError: no face was detected; the message names the file.
     """
-    from facenormals.reconstruct.detect import FaceBox
-
     image = read_image(path)
     if box is None:
         faces = detect_faces(image)

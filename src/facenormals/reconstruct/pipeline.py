@@ -26,6 +26,7 @@ from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import FitResult, fit_head
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, MorphableModel
+from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 
 __all__ = ["NetworkMaps", "PhotoView", "Reconstruction", "predict_maps", "reconstruct_views", "write_reconstruction"]
@@ -90,8 +91,6 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
         >>> maps.normal_maps.shape, maps.landmarks.shape
         (torch.Size([2, 3, 16, 16]), torch.Size([2, 24, 2]))
     """
-    from facenormals.training.metrics import landmark_threshold
-
     if threshold is None:
         threshold = landmark_threshold(net)
     start = time.perf_counter()
@@ -228,6 +227,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
         f, u0, v0 = fit.intrinsics[0, v].tolist()
         x0, y0, side = view.box
         s = side / view.crop.shape[0]
+        u0_image, v0_image = view.to_image(fit.intrinsics[0, v, 1:].double()).tolist()
         views_json.append({
             "image": view.path,
             "image_size": list(view.image_size),
@@ -236,7 +236,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
             "rotation": fit.rotation[0, v].tolist(),
             "translation_mm": fit.translation[0, v].tolist(),
             "intrinsics_crop_px": {"f": f, "u0": u0, "v0": v0},
-            "intrinsics_image_px": {"f": f * s, "u0": x0 + (u0 + 0.5) * s - 0.5, "v0": y0 + (v0 + 0.5) * s - 0.5},
+            "intrinsics_image_px": {"f": f * s, "u0": u0_image, "v0": v0_image},
             "landmarks_crop_px": {name: (None if not bool(maps.found[v, i]) else maps.landmarks[v, i].tolist())
                                   for i, name in enumerate(LANDMARK_NAMES)},
             "landmark_rms_px": float(fit.landmark_rms_px[0, v]),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 __all__ = ["TrainConfig"]
@@ -90,9 +91,10 @@ class TrainConfig:
         for name in ("weight_decay", "landmark_weight", "landmark_peak_weight", "foreground_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name}: expected a non-negative value, got {getattr(self, name)!r}")
-        for name in ("ema_decay", "min_lr_ratio"):
-            if not 0.0 <= getattr(self, name) < 1.0 + (name == "min_lr_ratio"):
-                raise ValueError(f"{name}: expected a value in [0, 1], got {getattr(self, name)!r}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay: expected a value in [0, 1), got {self.ema_decay!r}")
+        if not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise ValueError(f"min_lr_ratio: expected a value in [0, 1], got {self.min_lr_ratio!r}")
         if self.precision not in ("auto", "bf16", "fp32"):
             raise ValueError(f"precision: expected 'auto', 'bf16' or 'fp32', got {self.precision!r}")
         if self.threads is not None and self.threads < 1:
@@ -102,8 +104,6 @@ class TrainConfig:
 
     def learning_rate(self, step: int) -> float:
         """The learning rate of optimiser step ``step`` (0-based): linear warm-up, then cosine decay."""
-        import math
-
         if step < self.warmup_steps:
             return self.lr * (step + 1) / self.warmup_steps
         span = max(1, self.steps - self.warmup_steps)

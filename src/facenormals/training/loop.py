@@ -163,7 +163,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                                  f"{state['config'][key]} in {last}; use another --out to start afresh")
         if state["world_size"] != ctx.world_size or state["config"]["batch_size"] != config.batch_size:
             print(f"note: resuming with world size {ctx.world_size} x batch {config.batch_size} "
-                  f"(checkpoint: {state['world_size']} x {state['config']['batch_size']}); the data order restarts")
+                  f"(checkpoint: {state['world_size']} x {state['config']['batch_size']}); the data order differs from here on")
         net.load_state_dict(state["model"])
         ema.load_state_dict(state["ema"])
         optimizer.load_state_dict(state["optimizer"])

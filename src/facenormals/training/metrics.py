@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -11,17 +10,10 @@ from torch.utils.data import DataLoader, Dataset, Subset
 
 from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
+from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 
 __all__ = ["NetworkMetrics", "calibrate_landmark_threshold", "evaluate_network", "landmark_threshold", "normal_angles"]
-
-#: Detection threshold of landmark map peaks when a network carries no calibrated one.
-DEFAULT_LANDMARK_THRESHOLD = 0.1
-
-
-def landmark_threshold(net: torch.nn.Module) -> float:
-    """The network's calibrated landmark detection threshold (``metadata["landmark_threshold"]``), else 0.1."""
-    return float(getattr(net, "metadata", {}).get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD))
 
 
 @dataclass
@@ -113,8 +105,9 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         out = net(batch["image"].to(device))
         fg = batch["foreground"].to(device)
         angles.append(normal_angles(out.normals, batch["normals"].to(device), fg).cpu())
-        peaks, _ = landmarks_from_maps(out.landmarks.float(), threshold=-math.inf)
-        _, found = landmarks_from_maps(out.landmarks.float(), threshold=threshold)
+        maps = out.landmarks.float()
+        peaks, _ = landmarks_from_maps(maps, threshold=float("-inf"))  # every peak, detected or not
+        found = maps.flatten(2).amax(-1) > threshold
         visible = batch["landmark_visible"].to(device)
         err = (peaks - batch["landmarks"].to(device)).norm(dim=-1)
         errors.append(err[visible].cpu())
