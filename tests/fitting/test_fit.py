@@ -123,3 +123,20 @@ def test_grid_subset_thins_dense_regions_only():
     keep = grid_subset(torch.cat([dense, sparse]), 1.0)
     assert int(keep[:400].sum()) <= 27 and keep[400:].all()
     assert grid_subset(dense, 0.0).all()
+
+
+def test_spurious_landmarks_are_rejected(model, head):
+    """Two landmarks detected 25 px off (a network's spurious peaks): the Cauchy-reweighted fit stays
+    near the clean one, least squares does not, and the reported landmark RMS shows the outliers."""
+    obs = render_oracle_views(model, head, [10.0])
+    clean = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics)
+    bad = obs.landmarks.clone()
+    visible = torch.nonzero(torch.isfinite(bad[0, 0]).all(-1)).squeeze(1)
+    bad[0, 0, visible[:2]] += torch.tensor([25.0, -25.0], dtype=bad.dtype)
+    robust = fit_head(obs.normal_maps, bad, model, intrinsics=obs.intrinsics)
+    plain = fit_head(obs.normal_maps, bad, model, intrinsics=obs.intrinsics, landmark_robust_scale=None)
+    truth = obs.vertices[0]
+    err_clean, err_robust, err_plain = (p2p(model, r.vertices[0], truth) for r in (clean, robust, plain))
+    assert err_robust < 1.2 * err_clean + 0.05
+    assert err_plain > 1.5 * err_robust
+    assert float(robust.landmark_rms_px[0, 0]) > 5.0  # the RMS is of the raw errors, outliers included

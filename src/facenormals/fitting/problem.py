@@ -220,7 +220,7 @@ class HeadFitProblem:
         """Use the vertices ``visible`` ``(B, V, N)`` (and in ``vertex_subset``) in the normal term.
 
         Stores the padded per-view vertex lists ``vis_index``, ``vis_valid`` ``(B, V, S)``, resets
-        the robust weights to 1, and builds each subject's ring structure.
+        the robust weights (of vertices and landmarks) to 1, and builds each subject's ring structure.
         """
         used = visible & self.vertex_subset if self.vertex_subset is not None else visible
         counts = used.sum(-1)
@@ -228,6 +228,7 @@ class HeadFitProblem:
         self.vis_index = torch.argsort((~used).to(torch.uint8), dim=-1, stable=True)[..., :size]
         self.vis_valid = torch.arange(size, device=used.device) < counts[..., None]
         self.vertex_weights = torch.ones(self.B, self.V, size, dtype=self.dtype, device=used.device)
+        self.landmark_weights = torch.ones(self.B, self.V, self.L, dtype=self.dtype, device=used.device)
         self._rings, self._slots = [], []
         for b in range(self.B):
             union = torch.nonzero(used[b].any(0)).squeeze(1)
@@ -268,19 +269,38 @@ class HeadFitProblem:
         return layout
 
     @torch.no_grad()
-    def update_robust_weights(self, x: Tensor, scale: float) -> Tensor:
-        r"""Huber weights of the normal residuals at ``x`` for iteratively reweighted least squares.
+    def update_robust_weights(self, x: Tensor, scale: float | None, landmark_scale: float | None = None) -> Tensor:
+        r"""Robust weights of the normal and landmark residuals at ``x`` for iteratively reweighted least squares.
 
-        A visible vertex whose normal residual has norm :math:`\rho > \delta` (``scale``) gets weight
-        :math:`\delta / \rho`, so that its influence is that of Huber's loss; others keep weight 1.
-        Vertices where the map is sampled poorly (silhouettes, holes, sub-pixel detail such as
-        nostrils and ears) then stop biasing the fit. Returns the ``(B, V, S)`` weights.
+        Normals (Huber): a visible vertex whose normal residual has norm :math:`\rho > \delta`
+        (``scale``) gets weight :math:`\delta / \rho`, so that its influence is that of Huber's loss;
+        others keep weight 1. Vertices where the map is sampled poorly (silhouettes, holes, sub-pixel
+        detail such as nostrils and ears) then stop biasing the fit.
+
+        Landmarks (Cauchy): a landmark ``e`` pixels from its detection gets weight
+        :math:`1 / (1 + (e / \delta_Z)^2)` (``landmark_scale`` = :math:`\delta_Z`). The loss
+        redescends, so a wrongly detected landmark (a spurious peak tens of pixels off) is all but
+        ignored instead of dragging the shape along, while landmarks within a pixel or two keep
+        nearly full weight.
+
+        ``None`` leaves a term's weights at 1. Returns the ``(B, V, S)`` vertex weights.
         """
         self.vertex_weights = torch.ones_like(self.vertex_weights)
-        r_n = self.residual_terms(x)[0] / self.weights.normals**0.5  # (B, V, S, 3), unweighted
-        rho = r_n.norm(dim=-1)
-        self.vertex_weights = torch.where(rho > scale, scale / rho.clamp_min(1e-12), torch.ones_like(rho))
+        self.landmark_weights = torch.ones_like(self.landmark_weights)
+        if scale is not None and self.weights.normals > 0:
+            r_n = self.residual_terms(x)[0] / self.weights.normals**0.5  # (B, V, S, 3), unweighted
+            self.vertex_weights = _huber_weights(r_n.norm(dim=-1), scale)
+        if landmark_scale is not None:
+            error = self.landmark_errors(x).nan_to_num(0.0)
+            self.landmark_weights = 1.0 / (1.0 + (error / landmark_scale).square())
         return self.vertex_weights
+
+    @torch.no_grad()
+    def landmark_errors(self, x: Tensor) -> Tensor:
+        """Pixel distance of each projected model landmark to its detection ``(B, V, L)``, NaN where absent."""
+        g = self._geometry(x, None)
+        error = (g.lm_uv - self.landmarks.reshape(-1, self.L, 2)).norm(dim=-1).reshape(self.B, self.V, self.L)
+        return torch.where(self.landmark_mask, error, torch.nan)
 
     # ------------------------------------------------------------------------------------------
     # Residuals
@@ -361,6 +381,7 @@ class HeadFitProblem:
         r_n = torch.where(g.valid[..., None], g.sampled - n_cam, 0.0) * self._row_weights(index)[..., None]
         r_z = landmark_residuals(g.lm_uv, self._pick(self.landmarks, index).reshape(-1, self.L, 2),
                                  self._pick(self.landmark_mask, index).reshape(-1, self.L), weight=self.weights.landmarks)
+        r_z = r_z * self._pick(self.landmark_weights, index).reshape(-1, self.L, 1).sqrt()
         priors = self._prior_rows(g.p, index)
         if flat:
             return [r_n.reshape(count, -1), r_z.reshape(count, -1)] + priors
@@ -408,7 +429,8 @@ class HeadFitProblem:
 
         # Landmark and prior rows.
         PR_lm, A_lm = self._view_columns(g.landmark_points + t[:, None], R, D, g.K)
-        lm_scale = self.weights.landmarks**0.5 * self._pick(self.landmark_mask, index).reshape(-1, L, 1, 1).to(x.dtype)
+        lm_scale = (self.weights.landmarks * self._pick(self.landmark_mask, index) * self._pick(self.landmark_weights, index))
+        lm_scale = lm_scale.sqrt().reshape(-1, L, 1, 1).to(x.dtype)
         J_lm = ((PR_lm * lm_scale) @ self.basis_landmarks).view(count, V, 2 * L, C)
         A_lm = (A_lm * lm_scale).view(count, V, 2 * L, pv)
         small = torch.zeros(count, V * 2 * L, self.P, dtype=dtype, device=x.device)
@@ -479,6 +501,11 @@ class _Geometry:
     valid: Tensor  # (KV, S) inside the image and on the foreground
     landmark_points: Tensor  # (KV, L, 3)
     lm_uv: Tensor  # (KV, L, 2)
+
+
+def _huber_weights(rho: Tensor, scale: float) -> Tensor:
+    """IRLS weights of Huber's loss for residual norms ``rho``: 1 up to ``scale``, then ``scale / rho``."""
+    return torch.where(rho > scale, scale / rho.clamp_min(1e-12), torch.ones_like(rho))
 
 
 def _is_plain(x: Tensor) -> bool:
