@@ -26,7 +26,7 @@ def test_jacobian_matches_autograd(fit_intrinsics, fit_expression):
     expression = torch.full((1, 2), 0.3, dtype=torch.float64) if fit_expression else None
     x = problem.pack(0.5 * y, obs.angles + 0.02, obs.translation + 2.0, obs.intrinsics * 1.03, expression)
     problem.update_visibility(x, min_facing=0.1)
-    problem.update_robust_weights(x, 0.1)
+    problem.update_robust_weights(x, 0.1, landmark_scale=3.0)
     J = problem.jacobian(x)
     reference = torch.func.jacfwd(problem.residuals)(x)[:, :, 0]
     assert J.shape == reference.shape == (1, problem.residuals(x).shape[1], problem.P)
@@ -43,7 +43,14 @@ def test_pack_unpack_round_trip():
     p = problem.unpack(x)
     assert x.shape == (1, 6 + 3 * 9)
     assert torch.equal(p["shape"], y) and torch.equal(p["angles"], obs.angles)
-    assert torch.equal(p["translation"], obs.translation) and torch.equal(p["intrinsics"], obs.intrinsics)
+    assert torch.equal(p["translation"], obs.translation)
+    torch.testing.assert_close(p["intrinsics"], obs.intrinsics, rtol=1e-14, atol=0.0)
+    # the focal length is stored as its logarithm: any step keeps it positive
+    focal_slots = 6 + 9 * torch.arange(3) + 6
+    torch.testing.assert_close(x[0, focal_slots], obs.intrinsics[0, :, 0].log())
+    x_far = x.clone()
+    x_far[0, focal_slots] -= 50.0
+    assert (problem.unpack(x_far)["intrinsics"][..., 0] > 0).all()
 
 
 def two_subject_problem(**options):
@@ -56,7 +63,7 @@ def two_subject_problem(**options):
                              **options)
     x = problem.pack(0.5 * cat("shape_coeffs"), cat("angles") + 0.02, cat("translation") + 2.0, cat("intrinsics") * 1.02)
     problem.update_visibility(x, min_facing=0.1)
-    problem.update_robust_weights(x, 0.1)
+    problem.update_robust_weights(x, 0.1, landmark_scale=3.0)
     return problem, x
 
 

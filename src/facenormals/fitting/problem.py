@@ -3,7 +3,9 @@ r"""Residuals and analytic Jacobian of the paper's energy for B subjects seen in
 Parameters of one subject, packed in this order:
 
 - shape ``y`` (K), then expression ``e`` (E) if fitted;
-- per view: ``(roll, pitch, yaw)``, ``t`` (3) and, if fitted, the intrinsics ``(f, u0, v0)``.
+- per view: ``(roll, pitch, yaw)``, ``t`` (3) and, if fitted, the intrinsics as ``(log f, u0, v0)``:
+  the logarithm keeps the focal length positive whatever step the solver takes, and makes the
+  focal prior (a relative spread ``σ_f / f``) a plain quadratic in the parameter.
 
 Residuals of one subject: the normal term of every view's visible vertices (3 per vertex, padded to
 a common count ``S``), the landmark term of every view (2 per landmark), the shape prior (K), an
@@ -60,7 +62,8 @@ class FitWeights:
         landmarks: λZ of EZ.
         prior: λP of the shape prior EP.
         expression_prior: weight of ½‖e‖² when expressions are fitted.
-        focal_std: relative standard deviation of the focal-length prior, ``σ_f / f_prior``.
+        focal_std: standard deviation of the log-normal focal-length prior (of ``log f``; about the
+            relative spread ``σ_f / f_prior``).
         center_std: standard deviation of the principal-point prior, pixels.
     """
 
@@ -156,10 +159,13 @@ class HeadFitProblem:
 
     def pack(self, shape: Tensor, angles: Tensor, translation: Tensor, intrinsics: Tensor,
              expression: Tensor | None = None) -> Tensor:
-        """Parameters ``(B, P)`` from shape ``(B, K)``, per-view angles, translations, intrinsics ``(B, V, 3)``."""
+        """Parameters ``(B, P)`` from shape ``(B, K)``, per-view angles, translations, intrinsics ``(B, V, 3)``
+        (``(f, u0, v0)``; stored as ``(log f, u0, v0)``)."""
         parts = [shape]
         if self.E:
             parts.append(expression if expression is not None else shape.new_zeros(self.B, self.E))
+        if self.fit_intrinsics:
+            intrinsics = torch.cat([intrinsics[..., :1].log(), intrinsics[..., 1:]], dim=-1)
         view = [angles, translation] + ([intrinsics] if self.fit_intrinsics else [])
         parts.append(torch.cat(view, dim=-1).reshape(self.B, -1))
         return torch.cat(parts, dim=1)
@@ -170,7 +176,10 @@ class HeadFitProblem:
         out["expression"] = x[:, self.K : self.C] if self.E else None
         views = x[:, self.C :].reshape(x.shape[0], self.V, self.per_view)
         out["angles"], out["translation"] = views[..., 0:3], views[..., 3:6]
-        out["intrinsics"] = views[..., 6:9] if self.fit_intrinsics else self._pick(self.intrinsics_prior, index)
+        if self.fit_intrinsics:
+            out["intrinsics"] = torch.cat([views[..., 6:7].exp(), views[..., 7:9]], dim=-1)
+        else:
+            out["intrinsics"] = self._pick(self.intrinsics_prior, index)
         return out
 
     def vertices(self, x: Tensor, index: Tensor | None = None) -> Tensor:
@@ -312,11 +321,10 @@ class HeadFitProblem:
         if self.E:
             rows.append(p["expression"] * w.expression_prior**0.5)
         if self.fit_intrinsics:
-            prior = self._pick(self.intrinsics_prior, index)
-            scale = torch.stack(
-                [prior[..., 0] * w.focal_std, torch.full_like(prior[..., 0], w.center_std),
-                 torch.full_like(prior[..., 0], w.center_std)], dim=-1)
-            rows.append(((p["intrinsics"] - prior) / scale).reshape(prior.shape[0], -1))
+            prior, fitted = self._pick(self.intrinsics_prior, index), p["intrinsics"]
+            focal = (fitted[..., :1].log() - prior[..., :1].log()) / w.focal_std  # log-normal focal prior
+            centre = (fitted[..., 1:] - prior[..., 1:]) / w.center_std
+            rows.append(torch.cat([focal, centre], dim=-1).reshape(prior.shape[0], -1))
         return rows
 
     def _prior_jacobian(self) -> Tensor:
@@ -331,7 +339,7 @@ class HeadFitProblem:
             prior = self.intrinsics_prior
             for v in range(self.V):
                 c0 = self.C + v * self.per_view + 6
-                inv = torch.stack([1.0 / (prior[:, v, 0] * w.focal_std),
+                inv = torch.stack([torch.full_like(prior[:, v, 0], 1.0 / w.focal_std),
                                    torch.full_like(prior[:, v, 0], 1.0 / w.center_std),
                                    torch.full_like(prior[:, v, 0], 1.0 / w.center_std)], dim=-1)
                 J[:, self.C + 3 * v : self.C + 3 * v + 3, c0 : c0 + 3] = torch.diag_embed(inv)
@@ -400,7 +408,9 @@ class HeadFitProblem:
         parts = [P @ _rotated(D, q), PR]
         if self.fit_intrinsics:
             eye = torch.eye(2, dtype=q.dtype, device=q.device).expand(q.shape[0], q.shape[1], 2, 2)
-            parts.append(torch.cat([(cam[..., :2] / cam[..., 2:3]).unsqueeze(-1), eye], dim=-1))
+            # d a / d log f = f * d a / d f = f * (x / z, y / z)
+            focal = K[:, None, :1]
+            parts.append(torch.cat([(focal * cam[..., :2] / cam[..., 2:3]).unsqueeze(-1), eye], dim=-1))
         return PR, torch.cat(parts, dim=-1)
 
     def _jacobian_parts(self, x: Tensor, dtype: torch.dtype, index: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
