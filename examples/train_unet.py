@@ -25,6 +25,8 @@ import argparse
 import os
 from pathlib import Path
 
+from torch.utils.data import Subset
+
 from facenormals.data import SyntheticHeadDataset, write_dataset
 from facenormals.nn import load_weights
 from facenormals.training import TrainConfig, evaluate_network, export_weights, train
@@ -65,8 +67,11 @@ def main() -> None:
         return
     print(f"trained to step {summary.step} ({summary.samples_seen} samples, stopped by {summary.stopped_by})")
 
-    # 3. + 4. Export the averaged weights and score them on the whole held-out set.
-    weights = export_weights(summary.checkpoint, out / "normal_landmark_unet.pt")
+    # 3. + 4. Export the averaged weights, with the landmark detection threshold calibrated on the
+    # last (up to) 1,000 training samples, and score them on the whole held-out set.
+    train_set = SyntheticHeadDataset(data, with_landmark_maps=False)
+    calibration = Subset(train_set, range(max(0, len(train_set) - 1000), len(train_set)))
+    weights = export_weights(summary.checkpoint, out / "normal_landmark_unet.pt", calibration_data=calibration)
     metrics = evaluate_network(load_weights(weights), SyntheticHeadDataset(holdout, with_landmark_maps=False))
     print(f"held out: {metrics}")
     print(f"weights: {weights} ({weights.stat().st_size / 1e6:.1f} MB); use them with "
