@@ -8,9 +8,11 @@ from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, de
 from facenormals.reconstruct.images import ImageReadError, read_image
 from facenormals.reconstruct.photos import prepare_view, reconstruct_photos
 from facenormals.reconstruct.pipeline import (
+    NETWORK_FIT_WEIGHTS,
     NetworkMaps,
     PhotoView,
     Reconstruction,
+    landmark_channels,
     predict_maps,
     reconstruct_views,
     write_reconstruction,
@@ -19,6 +21,7 @@ from facenormals.reconstruct.pipeline import (
 __all__ = [
     "FaceBox",
     "ImageReadError",
+    "NETWORK_FIT_WEIGHTS",
     "NetworkMaps",
     "NoFaceError",
     "PhotoView",
@@ -26,6 +29,7 @@ __all__ = [
     "crop_square",
     "detect_faces",
     "head_crop_box",
+    "landmark_channels",
     "predict_maps",
     "prepare_view",
     "read_image",

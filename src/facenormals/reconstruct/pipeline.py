@@ -23,16 +23,23 @@ import torch
 from torch import Tensor
 
 from facenormals.data.landmark_maps import landmarks_from_maps
-from facenormals.fitting import FitResult, fit_head
+from facenormals.fitting import FitResult, FitWeights, fit_head
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, MorphableModel
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 
-__all__ = ["NetworkMaps", "PhotoView", "Reconstruction", "predict_maps", "reconstruct_views", "write_reconstruction"]
+__all__ = ["NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "landmark_channels", "predict_maps",
+           "reconstruct_views", "write_reconstruction"]
 
 #: Focal length prior in pixels of the 128-pixel crop (the middle of the training range, 120–800 px).
 DEFAULT_FOCAL = 300.0
+
+#: Energy weights of the fit to the shipped network's maps: the paper's λN and λZ, and a shape prior
+#: λP chosen on validation renders by ``benchmarks/tune_network_fit.py`` (docs/network_accuracy.md).
+#: The paper's λP = 0.4 lets the fit follow the network's errors (its normals are ~18 deg off on
+#: average), which gives heads worse than the mean head.
+NETWORK_FIT_WEIGHTS = FitWeights(normals=1.0, landmarks=0.8, prior=5.0)
 
 
 @dataclass
@@ -101,7 +108,12 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
                        seconds=time.perf_counter() - start)
 
 
-def _landmark_channels(model: MorphableModel) -> list[int]:
+def landmark_channels(model: MorphableModel) -> list[int]:
+    """The network's landmark channel of each of ``model``'s landmarks, matched by name.
+
+    Raises:
+        ValueError: naming the model's landmarks the network does not predict.
+    """
     missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
     if missing:
         raise ValueError(f"model: landmarks {missing} of model {model.name!r} are not among the network's "
@@ -120,17 +132,19 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         model: the morphable model (its landmarks are matched to the network's by name).
         focal: focal length prior in crop pixels (the fit refines it per view).
         log: progress messages go here.
-        **fit_options: passed to :func:`~facenormals.fitting.fit_head`.
+        **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
+            :data:`NETWORK_FIT_WEIGHTS`).
 
     Raises:
         ValueError: naming the view when it has fewer than 4 detected landmarks.
     """
     log = log or (lambda message: None)
+    fit_options.setdefault("weights", NETWORK_FIT_WEIGHTS)
     maps = predict_maps(net, crops)
     V, _, S, _ = crops.shape
     log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
         f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
-    channels = _landmark_channels(model)
+    channels = landmark_channels(model)
     landmarks = maps.landmarks[:, channels].to(model.mean.dtype)
     intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=model.mean.dtype).expand(V, 3)
     start = time.perf_counter()
