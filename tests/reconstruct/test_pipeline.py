@@ -19,7 +19,8 @@ from facenormals.reconstruct import PhotoView, Reconstruction, predict_maps, rec
 
 
 class OracleNet(nn.Module):
-    """Returns fixed maps whatever the input: the exact normals and landmark Gaussians of a known head."""
+    """Returns fixed maps whatever the input: the exact normals and landmark Gaussians of a known head
+    (so the tests call it with ``mirror=False``: it cannot see a mirrored crop)."""
 
     def __init__(self, normal_maps, landmarks):
         super().__init__()
@@ -49,7 +50,7 @@ def test_reconstruct_views_recovers_the_oracle_head(oracle):
     net = OracleNet(views.normal_maps[0], views.landmarks[0][:, order])
     # exact maps deserve the paper's weights, not the strong prior tuned for the shipped network
     maps, fit = reconstruct_views(torch.zeros(3, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
-                                  weights=FitWeights())
+                                  weights=FitWeights(), mirror=False)
     assert maps.found.all(-1).tolist() == views.landmark_mask[0].all(-1).tolist()
     err = (fit.vertices[0] - views.vertices[0]).norm(dim=-1)
     base = (model.mean - views.vertices[0]).norm(dim=-1)
@@ -68,19 +69,21 @@ def test_landmark_channels_are_matched_by_name(oracle):
     shuffled.landmark_names = [model.landmark_names[i] for i in keep]
     shuffled.landmark_indices = model.landmark_indices[keep]
     net = OracleNet(views.normal_maps[0][:1], views.landmarks[0][:1, order])
-    _, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, shuffled, focal=float(views.intrinsics[0, 0, 0]))
+    _, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, shuffled, focal=float(views.intrinsics[0, 0, 0]),
+                               mirror=False)
     assert float(fit.landmark_rms_px[0, 0]) < 1.0
     unknown = copy.deepcopy(model)
     unknown.landmark_names = ["glabella"] + model.landmark_names[1:]
     with pytest.raises(ValueError, match="glabella"):
-        reconstruct_views(torch.zeros(1, 3, 128, 128), net, unknown)
+        reconstruct_views(torch.zeros(1, 3, 128, 128), net, unknown, mirror=False)
 
 
 def test_write_reconstruction_files_and_params(oracle, tmp_path):
     model, views, order = oracle
     net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
     crop = np.full((128, 128, 3), 100, np.uint8)
-    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]))
+    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                                  mirror=False)
     view = PhotoView(crop=crop, box=(40.0, 20.0, 256.0), image_size=(400, 300), path="photo.jpg")
     written = write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
     names = sorted(p.name for p in written)

@@ -194,7 +194,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     def evaluate(max_samples: int | None) -> NetworkMetrics | None:
         if holdout is None or not ctx.is_main:
             return None
-        metrics = evaluate_network(ema, holdout, batch_size=config.batch_size, max_samples=max_samples)
+        metrics = evaluate_network(ema, holdout, batch_size=config.batch_size, max_samples=max_samples, mirror=False)
         _append_csv(out / "eval.csv", _EVAL_FIELDS, {"step": step, "samples_seen": samples_seen, **metrics.as_dict()})
         return metrics
 

@@ -10,6 +10,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 
 from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
+from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 
@@ -75,7 +76,7 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
 @torch.no_grad()
 def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
                      max_samples: int | None = None, threshold: float | None = None, workers: int = 0,
-                     device: str | torch.device | None = None) -> NetworkMetrics:
+                     device: str | torch.device | None = None, mirror: bool = True) -> NetworkMetrics:
     """Score ``net`` on a dataset of :class:`~facenormals.data.SyntheticHeadDataset` items.
 
     Args:
@@ -88,6 +89,8 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
             (default: the network's calibrated one, :func:`landmark_threshold`).
         workers: DataLoader workers.
         device: where to run (default: the network's device).
+        mirror: score :func:`~facenormals.nn.mirror_averaged` predictions (what
+            ``facenormals reconstruct`` uses); ``False`` scores the plain network.
     """
     if threshold is None:
         threshold = landmark_threshold(net)
@@ -102,7 +105,8 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
     agree = total = 0
     inter = union = 0
     for batch in DataLoader(dataset, batch_size=batch_size, num_workers=workers):
-        out = net(batch["image"].to(device))
+        image = batch["image"].to(device)
+        out = mirror_averaged(net, image) if mirror else net(image)
         fg = batch["foreground"].to(device)
         angles.append(normal_angles(out.normals, batch["normals"].to(device), fg).cpu())
         maps = out.landmarks.float()
@@ -136,12 +140,13 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
 @torch.no_grad()
 def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
                                  max_samples: int | None = 512,
-                                 candidates: Tensor | None = None) -> tuple[float, float]:
+                                 candidates: Tensor | None = None, mirror: bool = True) -> tuple[float, float]:
     """The peak threshold that best separates visible from hidden landmarks on ``dataset``.
 
     Use samples the network will not be scored on (e.g. training samples): the threshold is then
     stored with the weights (``export_weights(..., metadata={"landmark_threshold": t})``) and used
-    by :func:`evaluate_network` and :func:`~facenormals.reconstruct.predict_maps`.
+    by :func:`evaluate_network` and :func:`~facenormals.reconstruct.predict_maps`. ``mirror``
+    calibrates the peaks of :func:`~facenormals.nn.mirror_averaged` predictions, as those use it.
 
     Returns:
         ``(threshold, accuracy)``: the candidate with the most correct visibility decisions.
@@ -155,7 +160,8 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     device = next(net.parameters()).device
     peaks, visible = [], []
     for batch in DataLoader(dataset, batch_size=batch_size):
-        maps = net(batch["image"].to(device)).landmarks.float()
+        image = batch["image"].to(device)
+        maps = (mirror_averaged(net, image) if mirror else net(image)).landmarks.float()
         peaks.append(maps.flatten(2).amax(-1).cpu())
         visible.append(batch["landmark_visible"])
     net.train(was_training)

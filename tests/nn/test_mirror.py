@@ -1,0 +1,78 @@
+"""Test-time mirroring: the maths of mapping a mirrored prediction back, against naive loops."""
+
+import pytest
+import torch
+from torch import nn
+
+from facenormals.models import LANDMARK_NAMES, LANDMARK_PAIRS
+from facenormals.nn import NormalLandmarkUNet, UNetOutput, mirror_averaged, mirror_output, mirror_permutation
+
+
+def test_permutation_swaps_every_pair_and_keeps_the_midline():
+    perm = mirror_permutation()
+    assert sorted(perm) == list(range(24)) and all(perm[perm[i]] == i for i in range(24))
+    for right, left in LANDMARK_PAIRS:
+        assert LANDMARK_NAMES[perm[LANDMARK_NAMES.index(right)]] == left
+    for name in ("nose_tip", "chin", "upper_lip"):
+        assert perm[LANDMARK_NAMES.index(name)] == LANDMARK_NAMES.index(name)
+    with pytest.raises(ValueError, match="pairs"):
+        mirror_permutation(("a", "b"), [("a", "c")])
+
+
+def test_mirror_output_against_a_pixel_loop():
+    g = torch.Generator().manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(2, 3, 5, 7, generator=g), dim=1)
+    out = UNetOutput(n, torch.rand(2, 24, 5, 7, generator=g), torch.randn(2, 1, 5, 7, generator=g))
+    perm = mirror_permutation()
+    back = mirror_output(out, perm)
+    W = 7
+    for x in range(W):
+        xm = W - 1 - x  # pixel centres: x -> W - 1 - x
+        assert torch.equal(back.normals[:, 0, :, x], -out.normals[:, 0, :, xm])
+        assert torch.equal(back.normals[:, 1:, :, x], out.normals[:, 1:, :, xm])
+        assert torch.equal(back.foreground_logits[..., x], out.foreground_logits[..., xm])
+        for c in range(24):
+            assert torch.equal(back.landmarks[:, c, :, x], out.landmarks[:, perm[c], :, xm])
+    with pytest.raises(ValueError, match="output.landmarks"):
+        mirror_output(out, [0, 1])
+
+
+class _Mirrorable(nn.Module):
+    """Predicts a fixed scene: a sphere's normals and one landmark Gaussian per channel."""
+
+    def __init__(self, equivariant: bool):
+        super().__init__()
+        self.equivariant = equivariant
+        ys, xs = torch.meshgrid(torch.arange(16.0), torch.arange(16.0), indexing="ij")
+        nx, ny = (xs - 7.5) / 12, (ys - 7.5) / 12
+        self.n = torch.stack([nx, ny, -(1 - nx**2 - ny**2).sqrt()])[None]
+        self.z = torch.rand(1, 24, 16, 16, generator=torch.Generator().manual_seed(1))
+
+    def forward(self, images):
+        flipped = images[:, 0, 0, 0] < 0.5  # the marker pixel tells the mirrored input apart
+        n = self.n.expand(images.shape[0], -1, -1, -1).clone()
+        z = self.z.expand(images.shape[0], -1, -1, -1).clone()
+        if self.equivariant:
+            z[flipped] = mirror_output(UNetOutput(n[flipped], z[flipped], n[flipped, :1]), mirror_permutation()).landmarks
+        return UNetOutput(n, z, torch.zeros_like(n[:, :1]))
+
+
+def test_an_equivariant_network_is_unchanged_and_a_blind_one_is_averaged():
+    images = torch.zeros(1, 3, 16, 16)
+    images[..., 0] = 1.0  # the marker pixel (0, 0) is 1 in the original and 0 in the mirrored image
+    eq = _Mirrorable(equivariant=True)
+    avg = mirror_averaged(eq, images)
+    torch.testing.assert_close(avg.normals, eq.n)  # the sphere's normals are mirror-symmetric
+    torch.testing.assert_close(avg.landmarks, eq.z)
+    blind = _Mirrorable(equivariant=False)
+    avg = mirror_averaged(blind, images)
+    expected = 0.5 * (blind.z + blind.z.flip(-1)[:, mirror_permutation()])
+    torch.testing.assert_close(avg.landmarks, expected)
+
+
+def test_bad_input_names_the_argument():
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    with pytest.raises(ValueError, match="images"):
+        mirror_averaged(net, torch.rand(3, 16, 16))
+    with pytest.raises(ValueError, match="images"):
+        mirror_averaged(net, torch.zeros(1, 3, 16, 16, dtype=torch.uint8))
