@@ -52,3 +52,13 @@ def test_bad_inputs():
         landmark_maps(torch.zeros(1, 3, 2), None, (8, 8), sigma=0.0)
     with pytest.raises(ValueError, match=r"maps: expected shape \(B, L, H, W\)"):
         landmarks_from_maps(torch.zeros(3, 8, 8))
+
+
+def test_decoding_with_one_threshold_per_channel():
+    z = landmark_maps(torch.tensor([[[3.0, 2.0], [5.0, 4.0]]]), None, (8, 8)) * torch.tensor([0.5, 0.9]).view(1, 2, 1, 1)
+    _, found = landmarks_from_maps(z, threshold=torch.tensor([0.6, 0.6]))
+    assert found.tolist() == [[False, True]]
+    _, found = landmarks_from_maps(z, threshold=torch.tensor([0.4, 0.95]))
+    assert found.tolist() == [[True, False]]
+    with pytest.raises(ValueError, match="threshold"):
+        landmarks_from_maps(z, threshold=torch.tensor([0.1, 0.2, 0.3]))

@@ -56,8 +56,28 @@ def test_calibrated_threshold_is_stored_and_used():
     data = TinyHeads(6)
     hazy = Cheat(data, gain=0.6, floor=0.3)  # every map exceeds 0.3, visible peaks reach 0.9
     assert evaluate_network(hazy, data, threshold=0.1, mirror=False).visibility_accuracy < 0.9
-    threshold, accuracy = calibrate_landmark_threshold(hazy, data, mirror=False)
+    threshold, accuracy = calibrate_landmark_threshold(hazy, data, mirror=False, per_landmark=False)
     assert 0.3 < threshold < 0.9 and accuracy == 1.0
     hazy.metadata = {"landmark_threshold": threshold}
     assert landmark_threshold(hazy) == threshold
     assert evaluate_network(hazy, data, mirror=False).visibility_accuracy == 1.0
+
+
+def test_per_landmark_thresholds_separate_what_one_cannot():
+    """Half the channels have hazy maps of 0.3 with visible peaks at 0.55, the other half 0.7 and 0.95:
+    no common threshold separates both, one per channel does."""
+    data = TinyHeads(6)
+    floor = torch.tensor([0.3] * 12 + [0.7] * 12).view(24, 1, 1)
+    net = Cheat(data, gain=0.25, floor=floor)
+    common, common_accuracy = calibrate_landmark_threshold(net, data, mirror=False, per_landmark=False)
+    per_channel, accuracy = calibrate_landmark_threshold(net, data, mirror=False)
+    assert isinstance(common, float) and common_accuracy < 1.0
+    assert len(per_channel) == 24 and accuracy == 1.0
+    visible = torch.stack([d["landmark_visible"] for d in data.items])
+    mixed = [c for c in range(24) if 0 < int(visible[:, c].sum()) < len(data.items)]  # both outcomes seen
+    assert len(mixed) >= 4
+    for c in mixed:
+        assert (0.3 < per_channel[c] < 0.55) if c < 12 else (0.7 < per_channel[c] < 0.95), (c, per_channel[c])
+    net.metadata = {"landmark_threshold": per_channel}
+    assert torch.equal(landmark_threshold(net), torch.tensor(per_channel))
+    assert evaluate_network(net, data, mirror=False).visibility_accuracy == 1.0

@@ -81,7 +81,7 @@ def landmark_maps(
     return torch.where(keep, maps, torch.zeros((), dtype=maps.dtype, device=maps.device))
 
 
-def landmarks_from_maps(maps: Tensor, threshold: float = 0.1, eps: float = 1e-6) -> tuple[Tensor, Tensor]:
+def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: float = 1e-6) -> tuple[Tensor, Tensor]:
     r"""Sub-pixel landmark positions from landmark maps: the peak, refined by a parabola through the logs.
 
     For each channel the largest pixel is found; if it exceeds ``threshold`` its position is refined
@@ -90,7 +90,8 @@ def landmarks_from_maps(maps: Tensor, threshold: float = 0.1, eps: float = 1e-6)
 
     Args:
         maps: landmark maps.
-        threshold: smallest peak value that counts as a detection.
+        threshold: smallest peak value that counts as a detection: one for all channels, or one
+            per channel :math:`(L,)`.
         eps: values are clamped to at least ``eps`` before the logarithm.
 
     Returns:
@@ -109,6 +110,9 @@ def landmarks_from_maps(maps: Tensor, threshold: float = 0.1, eps: float = 1e-6)
     dims = check_shape(maps, ["B", "L", "H", "W"], "maps")
     check_floating(maps, "maps")
     b, l, h, w = dims["B"], dims["L"], dims["H"], dims["W"]
+    threshold = torch.as_tensor(threshold, dtype=maps.dtype, device=maps.device)
+    if threshold.dim() != 0:
+        check_shape(threshold, [l], "threshold")
     flat = maps.reshape(b, l, h * w)
     peak, index = flat.max(-1)
     row, col = index // w, index % w

@@ -18,9 +18,13 @@ _SHIPPED = "normal_landmark_unet.pt"
 DEFAULT_LANDMARK_THRESHOLD = 0.1
 
 
-def landmark_threshold(net: torch.nn.Module) -> float:
-    """The network's calibrated landmark detection threshold (``metadata["landmark_threshold"]``), else 0.1."""
-    return float(getattr(net, "metadata", {}).get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD))
+def landmark_threshold(net: torch.nn.Module) -> float | torch.Tensor:
+    """The network's calibrated landmark detection threshold (``metadata["landmark_threshold"]``), else 0.1.
+
+    A float, or one threshold per landmark channel as an ``(L,)`` tensor when the weights carry a list.
+    """
+    value = getattr(net, "metadata", {}).get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD)
+    return torch.tensor(value, dtype=torch.float32) if isinstance(value, (list, tuple)) else float(value)
 
 
 def pretrained_weights_path() -> Path:
