@@ -72,7 +72,7 @@ def main() -> None:
     problem = HeadFitProblem(model, h.normal_maps, h.landmarks, h.landmark_mask, h.intrinsics)
     x0 = problem.pack(torch.zeros(1, model.num_shape), pose.angles[None], pose.translation[None], h.intrinsics)
     problem.update_visibility(x0, min_facing=0.2)
-    problem.update_robust_weights(x0, 0.1)
+    problem.update_robust_weights(x0, 0.1, landmark_scale=3.0)
     options = dict(max_iterations=100, ftol=1e-8, xtol=1e-8, damping=1e-4, jacobian_dtype=torch.float32)
     ours_t, ours = timed(lambda: levenberg_marquardt(
         problem.residuals, x0, jacobian_fn=lambda z: problem.jacobian(z, torch.float32), **options))

@@ -60,8 +60,13 @@ def main() -> None:
              "| λP | p2p RMSE, similarity | correspondence RMSE, similarity | ratio to mean head |", "|---|---|---|---|"]
     for prior in (float(p) for p in args.priors.split(",")):
         weights = dataclasses.replace(NETWORK_FIT_WEIGHTS, prior=prior)
-        rows = [score(model, fit_head(n, lm, model, intrinsics=intrinsics, weights=weights).vertices[0], t)
-                for (n, lm), t in zip(views, truths)]
+        rows = []
+        for (n, lm), t in zip(views, truths):
+            try:
+                rows.append(score(model, fit_head(n, lm, model, intrinsics=intrinsics, weights=weights).vertices[0], t))
+            except ValueError as error:  # e.g. fewer than 4 landmarks detected: scored as the mean head
+                print(f"fit failed ({error}); scored as the mean head")
+                rows.append(score(model, model.mean, t))
         p2p, corr = (statistics.mean(r[k] for r in rows) for k in ("p2p sim", "corr sim"))
         lines.append(f"| {prior:g} | {p2p:.3f} | {corr:.3f} | {p2p / b_p2p:.2f} / {corr / b_corr:.2f} |")
         print(lines[-1], flush=True)

@@ -104,6 +104,14 @@ def test_bad_input(model, head):
         fit_head(obs.normal_maps, obs.landmarks[..., :10, :], model)
     with pytest.raises(ValueError, match="rounds"):
         fit_head(obs.normal_maps, obs.landmarks, model, rounds=0)
+    with pytest.raises(ValueError, match="landmark_robust_scale: expected a number > 0"):
+        fit_head(obs.normal_maps, obs.landmarks, model, landmark_robust_scale=0.0)
+    with pytest.raises(ValueError, match="robust_scale: expected a number > 0"):
+        fit_head(obs.normal_maps, obs.landmarks, model, robust_scale=-1.0)
+    bad_focal = obs.intrinsics.clone()
+    bad_focal[..., 0] = 0.0
+    with pytest.raises(ValueError, match="intrinsics: expected focal lengths f > 0"):
+        fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=bad_focal)
 
 
 def test_vertex_spacing_options(model, head):
@@ -140,3 +148,4 @@ def test_spurious_landmarks_are_rejected(model, head):
     assert err_robust < 1.2 * err_clean + 0.05
     assert err_plain > 1.5 * err_robust
     assert float(robust.landmark_rms_px[0, 0]) > 5.0  # the RMS is of the raw errors, outliers included
+    assert float(robust.landmark_median_px[0, 0]) < 1.0  # the median is not moved by two outliers

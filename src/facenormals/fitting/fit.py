@@ -41,7 +41,13 @@ class FitResult:
         iterations: ``(B,)`` LM iterations over all rounds.
         status: ``(B,)`` :class:`~facenormals.optim.LMStatus` of the last round; reasons: its reasons.
         visible: ``(B, V, N)`` visibility at the last round.
-        landmark_rms_px: ``(B, V)`` landmark reprojection RMS.
+        landmark_rms_px: ``(B, V)`` landmark reprojection RMS over every given landmark, outliers
+            included (NaN for a view without landmarks).
+        landmark_median_px: ``(B, V)`` median reprojection error: not moved by the few spurious
+            landmarks that the Cauchy weights ignore.
+
+    ``energies["landmarks"]`` is the landmark term as minimised in the last round, i.e. with the
+    Cauchy weights of that round's start.
     """
 
     vertices: Tensor
@@ -58,6 +64,7 @@ class FitResult:
     reasons: list[str]
     visible: Tensor
     landmark_rms_px: Tensor
+    landmark_median_px: Tensor
     prealignment_rms_px: Tensor
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -172,6 +179,9 @@ def fit_head(
     start = time.perf_counter()
     if rounds < 1 or iterations_per_round < 1:
         raise ValueError(f"rounds, iterations_per_round: expected >= 1, got {rounds}, {iterations_per_round}")
+    for name, value in (("robust_scale", robust_scale), ("landmark_robust_scale", landmark_robust_scale)):
+        if value is not None and not value > 0:
+            raise ValueError(f"{name}: expected a number > 0 or None, got {value!r}")
     normal_maps = _as_views(normal_maps, "normal_maps", [3, "H", "W"])
     B, V, _, H, W = normal_maps.shape
     landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2])
@@ -184,6 +194,8 @@ def fit_head(
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
     intrinsics = _as_views(intrinsics, "intrinsics", [3]).to(dtype)
+    if not bool((intrinsics[..., 0] > 0).all()):
+        raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[..., 0].min().item():g}")
     if landmark_mask is None:
         landmark_mask = torch.isfinite(landmarks).all(-1)
     landmark_mask = _as_views(landmark_mask, "landmark_mask", [landmarks.shape[2]]) & torch.isfinite(landmarks).all(-1)
@@ -243,7 +255,8 @@ def fit_head(
         energies["expression_prior"] = 0.5 * extra.pop(0).square().sum(1)
     if fit_intrinsics:
         energies["intrinsics_prior"] = 0.5 * extra.pop(0).square().sum(1)
-    lm_rms = problem.landmark_errors(x).square().nanmean(-1).sqrt()
+    lm_errors = problem.landmark_errors(x)
+    lm_rms = lm_errors.square().nanmean(-1).sqrt()
     return FitResult(
         vertices=problem.vertices(x),
         faces=model.faces,
@@ -259,6 +272,7 @@ def fit_head(
         reasons=result.reasons,
         visible=visible,
         landmark_rms_px=lm_rms,
+        landmark_median_px=lm_errors.nanmedian(-1).values,
         prealignment_rms_px=pre_rms,
         timings={"prealign_s": t_pre - start, "total_s": time.perf_counter() - start},
     )

@@ -137,6 +137,9 @@ class HeadFitProblem:
         self.normal_maps = normal_maps.to(self.dtype)
         self.landmarks = landmarks.to(self.dtype)
         self.landmark_mask = landmark_mask
+        if not bool((intrinsics_prior[..., 0] > 0).all()):
+            raise ValueError("intrinsics_prior: expected focal lengths f > 0, got "
+                             f"{intrinsics_prior[..., 0].min().item():g}")
         self.intrinsics_prior = intrinsics_prior.to(self.dtype)
         self.weights = weights
         ones = torch.ones(self.B, self.V, dtype=self.dtype, device=device)
@@ -294,6 +297,9 @@ class HeadFitProblem:
 
         ``None`` leaves a term's weights at 1. Returns the ``(B, V, S)`` vertex weights.
         """
+        for name, value in (("scale", scale), ("landmark_scale", landmark_scale)):
+            if value is not None and not value > 0:
+                raise ValueError(f"{name}: expected a number > 0 or None, got {value!r}")
         self.vertex_weights = torch.ones_like(self.vertex_weights)
         self.landmark_weights = torch.ones_like(self.landmark_weights)
         if scale is not None and self.weights.normals > 0:
@@ -439,7 +445,8 @@ class HeadFitProblem:
 
         # Landmark and prior rows.
         PR_lm, A_lm = self._view_columns(g.landmark_points + t[:, None], R, D, g.K)
-        lm_scale = (self.weights.landmarks * self._pick(self.landmark_mask, index) * self._pick(self.landmark_weights, index))
+        mask = self._pick(self.landmark_mask, index).to(x.dtype)
+        lm_scale = self.weights.landmarks * mask * self._pick(self.landmark_weights, index)
         lm_scale = lm_scale.sqrt().reshape(-1, L, 1, 1).to(x.dtype)
         J_lm = ((PR_lm * lm_scale) @ self.basis_landmarks).view(count, V, 2 * L, C)
         A_lm = (A_lm * lm_scale).view(count, V, 2 * L, pv)

@@ -88,6 +88,9 @@ def mirror_averaged(net: nn.Module, images: Tensor, permutation: Sequence[int] |
     if permutation is None:
         permutation = mirror_permutation()
     both = net(torch.cat([images, images.flip(-1)]))
+    if len(permutation) != both.landmarks.shape[1]:
+        raise ValueError(f"permutation: expected one entry per landmark channel ({both.landmarks.shape[1]}), "
+                         f"got {len(permutation)}")
     B = images.shape[0]
     plain = UNetOutput(*(t[:B] for t in both))
     back = mirror_output(UNetOutput(*(t[B:] for t in both)), permutation)

@@ -14,6 +14,7 @@ from facenormals.reconstruct.images import read_image
 from facenormals.reconstruct.pipeline import PhotoView, Reconstruction, reconstruct_views, write_reconstruction
 
 if TYPE_CHECKING:
+    from facenormals.fitting import FitWeights
     from facenormals.models import MorphableModel
 
 __all__ = ["prepare_view", "reconstruct_photos"]
@@ -45,7 +46,8 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
 def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
                        model: "MorphableModel | str" = "auto", weights: str | Path | None = None,
                        device: str = "cpu", boxes: Sequence | None = None,
-                       log: Callable[[str], None] = print, **fit_options: Any) -> Reconstruction:
+                       log: Callable[[str], None] = print, fit_weights: "FitWeights | None" = None,
+                       mirror: bool = True, **fit_options: Any) -> Reconstruction:
     """Reconstruct one head from one or more photos of a person and write the results.
 
     All photos are read and their faces found before anything is computed or written, so a bad
@@ -61,6 +63,9 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         device: where the network runs.
         boxes: optional face boxes ``(x, y, w, h)`` per photo (``None`` entries: detect).
         log: progress messages.
+        fit_weights: the fit's energy weights (default:
+            :data:`~facenormals.reconstruct.NETWORK_FIT_WEIGHTS`).
+        mirror: average the network's maps with those of the mirrored crops.
         **fit_options: passed to :func:`~facenormals.fitting.fit_head`.
     """
     from facenormals.models import MorphableModel, load_model
@@ -99,7 +104,9 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
 
     t = time.perf_counter()
     crops = torch.from_numpy(np.stack([v.crop for v in views])).permute(0, 3, 1, 2).float() / 255.0
-    maps, fit = reconstruct_views(crops, net, model, log=log, **fit_options)
+    if fit_weights is not None:
+        fit_options["weights"] = fit_weights
+    maps, fit = reconstruct_views(crops, net, model, log=log, mirror=mirror, **fit_options)
     timings["network"] = maps.seconds
     timings["fit"] = float(fit.timings.get("total_s", time.perf_counter() - t - maps.seconds))
     timings["reconstruct"] = time.perf_counter() - t

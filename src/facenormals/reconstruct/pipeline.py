@@ -118,6 +118,11 @@ def landmark_channels(model: MorphableModel) -> list[int]:
 
     Raises:
         ValueError: naming the model's landmarks the network does not predict.
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> landmark_channels(builtin_head_model())[:4]
+        [0, 1, 2, 3]
     """
     missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
     if missing:
@@ -157,10 +162,10 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     fit = fit_head(maps.normal_maps.to(model.mean.dtype), landmarks, model, intrinsics=intrinsics, **fit_options)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
     for v in range(V):
-        f_v, rms = float(fit.intrinsics[0, v, 0]), float(fit.landmark_rms_px[0, v])
-        if not (0.25 * focal <= f_v <= 4.0 * focal) or not rms <= 0.05 * S:
+        f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])
+        if not (0.25 * focal <= f_v <= 4.0 * focal) or not median <= 0.03 * S:
             log(f"warning: view {v} looks unreliable (focal {f_v:.0f} px against the prior {focal:.0f} px, "
-                f"landmark RMS {rms:.1f} px): check view{v}_overlay.png and view{v}_landmarks.png")
+                f"median landmark error {median:.1f} px): check view{v}_overlay.png and view{v}_landmarks.png")
     return maps, fit
 
 
@@ -260,6 +265,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
             "landmarks_crop_px": {name: (None if not bool(maps.found[v, i]) else maps.landmarks[v, i].tolist())
                                   for i, name in enumerate(LANDMARK_NAMES)},
             "landmark_rms_px": float(fit.landmark_rms_px[0, v]),
+            "landmark_median_px": float(fit.landmark_median_px[0, v]),
         })
     params = {
         "format": "facenormals-reconstruction", "version": 1,
