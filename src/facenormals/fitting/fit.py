@@ -160,7 +160,7 @@ def fit_head(
             ``robust_scale`` (see :meth:`HeadFitProblem.update_robust_weights`); ``None`` gives
             plain least squares. A detector's (or the network's) spurious landmark tens of pixels off
             otherwise drags the shape (docs/network_accuracy.md); exact landmarks stay well inside
-            it, so fits to exact landmarks do not change.
+            it, so fits to exact landmarks do not change. The pre-alignment reweights the same way.
         vertex_spacing: the normal term uses about one model vertex per cube of this many pixels
             (:func:`~facenormals.fitting.subsample.grid_subset` of the mean head, with the pixel size
             at the pre-aligned head's depth); vertices denser than the pixels add cost but little
@@ -213,7 +213,7 @@ def fit_head(
                     "at least 4 are needed to pre-align it"
                 )
         pose = prealign_pose(landmarks.reshape(B * V, -1, 2), model.mean[model.landmark_indices],
-                             intrinsics.reshape(B * V, 3), flat_mask)
+                             intrinsics.reshape(B * V, 3), flat_mask, robust_scale=landmark_robust_scale)
         angles, translation = pose.angles.reshape(B, V, 3), pose.translation.reshape(B, V, 3)
         pre_rms = pose.rms_px.reshape(B, V)
     else:

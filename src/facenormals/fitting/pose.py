@@ -131,6 +131,8 @@ def prealign_pose(
     init: str = "pnp",
     yaw_starts_deg: Sequence[float] = DEFAULT_YAW_STARTS,
     max_iterations: int = 40,
+    robust_scale: float | None = None,
+    robust_rounds: int = 2,
 ) -> PoseEstimate:
     r"""Head pose of a fixed shape from 2D landmarks, robust to any yaw in ±90°.
 
@@ -146,6 +148,11 @@ def prealign_pose(
         init: ``"pnp"`` or ``"multistart"``.
         yaw_starts_deg: initial yaw angles in degrees for ``"multistart"``.
         max_iterations: LM iterations per start.
+        robust_scale: if given, ``robust_rounds`` more solves from the result, each with Cauchy
+            weights :math:`1 / (1 + (e_j / \delta)^2)` of the landmark errors :math:`e_j` (pixels) at
+            its start (IRLS), so that a few spurious landmarks do not tilt the pose; ``cost`` and
+            ``rms_px`` stay those of the plain errors.
+        robust_rounds: the number of reweighted solves.
 
     Returns:
         A :class:`PoseEstimate`.
@@ -187,6 +194,8 @@ def prealign_pose(
                 f"landmarks: view {view} has {count} visible landmarks; the pose needs at least 4 "
                 "(is there a face in this view?)"
             )
+    if robust_scale is not None and not robust_scale > 0:
+        raise ValueError(f"robust_scale: expected a number > 0 or None, got {robust_scale!r}")
     if init not in ("pnp", "multistart"):
         raise ValueError(f"init: expected 'pnp' or 'multistart', got {init!r}")
     out_dtype = landmarks.dtype
@@ -230,16 +239,30 @@ def prealign_pose(
     cost = torch.where(result.status.view(starts, batch) == LMStatus.FAILED, math.inf, cost)
     best = cost.argmin(0)
     pick = best * batch + torch.arange(batch, device=best.device)
-    x = result.x[pick]
+    x, status = result.x[pick], result.status[pick]
+
+    def view_residuals(z: Tensor) -> Tensor:  # (B, L, 2), one row per view (no starts)
+        uv, _ = project_points(model_points, euler_to_rotation_matrix(z[:, :3]), z[:, 3:], intrinsics)
+        return landmark_residuals(uv, landmarks, mask)
+
+    for _ in range(robust_rounds if robust_scale is not None else 0):
+        sqrt_w = (1.0 / (1.0 + (view_residuals(x).norm(dim=-1) / robust_scale).square())).sqrt()[..., None]
+        weighted = levenberg_marquardt(
+            lambda z, w=sqrt_w: (view_residuals(z) * w).flatten(1), x,
+            jacobian_fn=lambda z, w=sqrt_w: (landmark_pose_jacobian(model_points, z, intrinsics, mask)
+                                             .view(batch, -1, 2, 6) * w[..., None]).flatten(1, 2),
+            max_iterations=max_iterations, damping=1e-4, ftol=1e-7, xtol=1e-7,
+        )
+        x, status = weighted.x, weighted.status
     # Wrap the angles into (-pi, pi].
     angles = torch.atan2(torch.sin(x[:, :3]), torch.cos(x[:, :3]))
     count = mask.sum(1).to(dtype)
-    final_cost = result.cost[pick]
+    final_cost = 0.5 * view_residuals(x).square().flatten(1).sum(1)
     return PoseEstimate(
         angles=angles.to(out_dtype),
         translation=x[:, 3:].to(out_dtype),
         rotation=euler_to_rotation_matrix(angles).to(out_dtype),
         cost=final_cost.to(out_dtype),
         rms_px=(2.0 * final_cost / count).sqrt().to(out_dtype),
-        status=result.status[pick],
+        status=status,
     )
