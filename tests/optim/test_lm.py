@@ -559,3 +559,25 @@ def test_bad_jacobian_fn_raises(jacobian_fn):
 def test_bad_options_raise(option, value):
     with pytest.raises(ValueError, match=option):
         levenberg_marquardt(rosenbrock, torch.zeros(1, 2, dtype=F64), **{option: value})
+
+
+def test_ftol_stops_at_a_noisy_floor_like_minpack():
+    """A cost with a floor the Jacobian does not model (a sampled image's noise) and a slightly wrong
+    Jacobian: once predicted and actual changes are both below ftol the solve stops as converged
+    (MINPACK's test, which also counts rejected steps), at the same point that ftol = 0 reaches only
+    by shrinking the step to xtol."""
+    x0 = torch.tensor([[5.0, -3.0]], dtype=torch.float64)
+    target = torch.tensor([1.0, 2.0], dtype=torch.float64)
+
+    def residuals(x):
+        floor = 0.1 * (1.0 + 0.02 * torch.sin(1e4 * x.sum(-1, keepdim=True)))
+        return torch.cat([x - target, floor], dim=-1)
+
+    J = torch.tensor([[1.3, 0.0], [0.0, 1.3], [0.0, 0.0]], dtype=torch.float64)
+    solve = lambda ftol: levenberg_marquardt(residuals, x0, jacobian_fn=lambda x: J.expand(x.shape[0], 3, 2),  # noqa: E731
+                                             max_iterations=50, ftol=ftol, xtol=1e-12, gtol=0.0)
+    stopped, exhaustive = solve(1e-3), solve(0.0)
+    assert stopped.reasons == ["relative cost reduction below ftol"] and stopped.status[0] == LMStatus.CONVERGED
+    assert exhaustive.reasons == ["step below xtol"]
+    assert int(stopped.iterations[0]) < int(exhaustive.iterations[0])
+    torch.testing.assert_close(stopped.cost, exhaustive.cost, rtol=1e-3, atol=0.0)

@@ -211,7 +211,11 @@ def levenberg_marquardt(
     - a step (accepted or rejected) is small, :math:`\lVert\delta\rVert \le`
       ``xtol`` :math:`(\lVert x\rVert +` ``xtol``:math:`)`, or leaves ``x`` bit-for-bit unchanged
       (below the floating-point resolution, which ends float32 runs near the noise floor),
-    - an accepted step with :math:`\rho > 1/4` reduces the cost by at most ``ftol`` times the cost;
+    - an accepted step with :math:`\rho > 1/4` reduces the cost by at most ``ftol`` times the cost,
+      or (MINPACK's test, for accepted and rejected steps alike) both the predicted reduction and the
+      absolute actual change are at most ``ftol`` times the cost with :math:`\rho \le 2`: near a
+      minimum of a slightly noisy or piecewise-smooth cost (a sampled image, a changing mask) the
+      steps then stop, instead of being rejected until ``max_iterations`` while the damping grows;
 
     with :attr:`LMStatus.FAILED` when its residuals are not finite at ``x0``, its Jacobian is not
     finite at an accepted point, or its damping exceeds ``max_damping``; and with
@@ -489,6 +493,8 @@ def _solve(
         small_step = step.norm(dim=-1) <= xtol * (x.norm(dim=-1) + xtol)
         no_move = (x_trial == x).all(-1)
         small_reduction = accepted & (actual <= ftol * cost) & (rho > 0.25)
+        # MINPACK (lmder): predicted and actual relative changes both within ftol, rho <= 2.
+        small_reduction |= active & trial_ok & (actual.abs() <= ftol * cost) & (pred <= ftol * cost) & (rho <= 2.0)
 
         # Accept.
         x = torch.where(accepted[:, None], x_trial, x)
