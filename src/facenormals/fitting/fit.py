@@ -159,7 +159,7 @@ def fit_head(
         landmark_robust_scale: Cauchy scale of the landmark residuals in pixels, reweighted like
             ``robust_scale`` (see :meth:`HeadFitProblem.update_robust_weights`); ``None`` gives
             plain least squares. A detector's (or the network's) spurious landmark tens of pixels off
-            otherwise drags the shape (docs/network_accuracy.md); exact landmarks stay well inside
+            otherwise drags the shape (docs/model_card.md); exact landmarks stay well inside
             it, so fits to exact landmarks do not change. The pre-alignment reweights the same way.
         vertex_spacing: the normal term uses about one model vertex per cube of this many pixels
             (:func:`~facenormals.fitting.subsample.grid_subset` of the mean head, with the pixel size

@@ -4,8 +4,8 @@ Mirroring the photo about its vertical centre line (pixel ``x`` goes to ``W - 1 
 ``docs/conventions.md``) mirrors the scene about the camera's ``y-z`` plane. A prediction on the
 mirrored photo is mapped back by mirroring the maps again, negating the ``x`` component of the
 normals, and swapping the landmark channels of each right/left pair. On the held-out synthetic set
-the average of the two is better than either (the shipped network: landmarks ~15 % closer, normals
-~4 %; docs/model_card.md), for twice the inference cost.
+the average of the two is better than either (the shipped network: landmarks ~12 % closer, normals
+~6 %; docs/model_card.md), for twice the inference cost.
 """
 
 from __future__ import annotations

@@ -148,9 +148,9 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     stored with the weights (``export_weights(..., calibration_data=...)``) and used by
     :func:`evaluate_network` and :func:`~facenormals.reconstruct.predict_maps`. ``mirror``
     calibrates the peaks of :func:`~facenormals.nn.mirror_averaged` predictions, as those use it.
-    ``per_landmark`` chooses one threshold per landmark channel (peaks of ears and eye corners are
-    lower than the nose's: on the shipped network's held-out set it gets 3 points more decisions
-    right than one common threshold), else one for all.
+    ``per_landmark`` chooses one threshold per landmark channel (the peaks of eye corners, ears and
+    the nose differ: on 512 held-out images of the step-5,248 network, 77.4 % of the decisions were
+    right instead of 74.4 % with one common threshold), else one for all.
 
     Returns:
         ``(threshold, accuracy)``: the threshold (a list of one per channel with ``per_landmark``)
