@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from facenormals.nn import load_weights
-from facenormals.training import TrainConfig, export_weights, load_checkpoint, train
+from facenormals.training import TrainConfig, export_weights, landmark_threshold, load_checkpoint, train
 from facenormals.training.loop import _EpochSampler
 
 from .conftest import TinyHeads
@@ -78,7 +78,9 @@ def test_export_weights_round_trip(tmp_path):
         torch.testing.assert_close(value, ema[key].half().float())
     assert net.metadata["note"] == "test" and net.metadata["step"] == 2
     calibrated = load_weights(export_weights(summary.checkpoint, tmp_path / "c.pt", calibration_data=TinyHeads(8)))
-    assert 0.05 <= calibrated.metadata["landmark_threshold"] <= 0.95
+    thresholds = calibrated.metadata["landmark_threshold"]  # one per landmark channel
+    assert len(thresholds) == 24 and all(0.05 <= t <= 0.95 for t in thresholds)
+    assert landmark_threshold(calibrated).shape == (24,)
     assert calibrated.metadata["landmark_threshold_samples"] == 8
 
 
