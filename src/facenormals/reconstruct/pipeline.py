@@ -121,8 +121,8 @@ def landmark_channels(model: MorphableModel) -> list[int]:
 
     Example:
         >>> from facenormals.models import builtin_head_model
-        >>> landmark_channels(builtin_head_model())[:4]
-        [0, 1, 2, 3]
+        >>> tuple(landmark_channels(builtin_head_model())[:4])
+        (0, 1, 2, 3)
     """
     missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
     if missing:
