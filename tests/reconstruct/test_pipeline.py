@@ -171,3 +171,21 @@ def test_angles_are_wrapped_for_params_json():
     assert _wrap_degrees(np.radians(191.0)) == pytest.approx(-169.0)
     assert _wrap_degrees(np.radians(-30.0)) == pytest.approx(-30.0)
     assert _wrap_degrees(np.pi) == pytest.approx(180.0)
+
+
+def test_unreliable_view_warning_follows_the_median_landmark_error(oracle):
+    """Two spurious landmarks (which the fit ignores) raise no warning; landmarks that are all off do."""
+    model, views, order = oracle
+    focal = float(views.intrinsics[0, 0, 0])
+    landmarks = views.landmarks[0][1:2, order].clone()
+    found = torch.isfinite(landmarks).all(-1)[0].nonzero().squeeze(1)
+    two_off = landmarks.clone()
+    two_off[0, found[:2]] += 30.0
+    all_off = landmarks.clone()
+    all_off[0, found[::2]] += torch.tensor([12.0, -12.0])
+    all_off[0, found[1::2]] -= torch.tensor([12.0, -12.0])
+    for points, warned in ((landmarks, False), (two_off, False), (all_off, True)):
+        messages = []
+        net = OracleNet(views.normal_maps[0][1:2], points)
+        reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, log=messages.append, mirror=False)
+        assert any("looks unreliable" in m for m in messages) == warned, messages

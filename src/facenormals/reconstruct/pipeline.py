@@ -163,7 +163,7 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])
-        if not (0.25 * focal <= f_v <= 4.0 * focal) or not median <= 0.03 * S:
+        if not (0.25 * focal <= f_v <= 4.0 * focal) or not median <= 0.05 * S:
             log(f"warning: view {v} looks unreliable (focal {f_v:.0f} px against the prior {focal:.0f} px, "
                 f"median landmark error {median:.1f} px): check view{v}_overlay.png and view{v}_landmarks.png")
     return maps, fit
