@@ -319,7 +319,10 @@ def plot(series: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int], str]],
     for t in np.arange(x_lo, x_hi + 1e-9 * x_step, x_step):
         u = round(left + (t - x_lo) / (x_hi - x_lo) * (width - left - right))
         cv2.line(img, (u, top), (u, height - bottom), grey, 1)
-        cv2.putText(img, f"{t:g}", (u - 12, height - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.38, black, 1,
+        label = f"{t:g}"
+        w = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.38, 1)[0][0]
+        x_text = min(u - w // 2, width - w - 2)  # centred under the tick, never past the right edge
+        cv2.putText(img, label, (x_text, height - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.38, black, 1,
                     cv2.LINE_AA)
     cv2.rectangle(img, (left, top), (width - right, height - bottom), black, 1)
     cv2.putText(img, "step", (width // 2 - 12, height - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, black, 1, cv2.LINE_AA)
