@@ -56,6 +56,10 @@ def test_resume_is_bitwise_identical_for_the_same_config(tmp_path):
     assert first.stopped_by == "signal" and first.step == 3 and not first.finished
     resumed = train(config, data, progress=False)
     assert resumed.step == 8
+    # the first log row after the resume averages the one step it saw (not 1 / log_every of it)
+    rows = {r["step"]: float(r["loss"]) for r in csv.DictReader((tmp_path / "b" / "run" / "log.csv").open())}
+    reference = {r["step"]: float(r["loss"]) for r in csv.DictReader((tmp_path / "a" / "run" / "log.csv").open())}
+    assert 0.75 < rows["4"] / reference["4"] < 1.33 and rows["6"] == reference["6"]
     a, b = load_checkpoint(straight.checkpoint), load_checkpoint(resumed.checkpoint)
     for key in a["model"]:
         torch.testing.assert_close(b["model"][key], a["model"][key], rtol=0, atol=0)

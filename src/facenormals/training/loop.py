@@ -216,6 +216,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     stopped_by = "steps"
     metrics: NetworkMetrics | None = None
     running: dict[str, float] = {}
+    window_steps = 0  # steps summed in ``running`` (fewer than log_every in the first window of a resumed run)
     try:
         batches = iter(loader)
         while step < config.steps:
@@ -256,16 +257,16 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             step += 1
             samples_seen += config.batch_size * ctx.world_size
             window_images += config.batch_size * ctx.world_size
+            window_steps += 1
             for key, value in (("loss", loss), *terms.items()):
                 running[key] = running.get(key, 0.0) + float(value.detach())
             if step % config.log_every == 0 or step == config.steps:
                 now = time.perf_counter()
-                n = config.log_every if step % config.log_every == 0 else step % config.log_every
-                row = {k: v / n for k, v in running.items()}
+                row = {k: v / window_steps for k, v in running.items()}
                 row.update(step=step, epoch=samples_seen / len(dataset), samples_seen=samples_seen, lr=lr,
                            images_per_s=window_images / max(now - window_start, 1e-9),
                            elapsed_s=now - start)
-                running, window_start, window_images = {}, now, 0
+                running, window_start, window_images, window_steps = {}, now, 0, 0
                 if ctx.is_main:
                     _append_csv(out / "log.csv", _LOG_FIELDS, row)
                     if bar is not None:
