@@ -19,6 +19,7 @@ from torch import Tensor
 from facenormals.core.check import check_shape
 from facenormals.fitting.pose import prealign_pose
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
+from facenormals.fitting.robust import check_scale
 from facenormals.fitting.subsample import grid_subset
 from facenormals.geometry import euler_to_rotation_matrix, transform_points
 from facenormals.models import MorphableModel
@@ -179,9 +180,8 @@ def fit_head(
     start = time.perf_counter()
     if rounds < 1 or iterations_per_round < 1:
         raise ValueError(f"rounds, iterations_per_round: expected >= 1, got {rounds}, {iterations_per_round}")
-    for name, value in (("robust_scale", robust_scale), ("landmark_robust_scale", landmark_robust_scale)):
-        if value is not None and not value > 0:
-            raise ValueError(f"{name}: expected a number > 0 or None, got {value!r}")
+    check_scale("robust_scale", robust_scale)
+    check_scale("landmark_robust_scale", landmark_robust_scale)
     normal_maps = _as_views(normal_maps, "normal_maps", [3, "H", "W"])
     B, V, _, H, W = normal_maps.shape
     landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2])

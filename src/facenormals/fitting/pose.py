@@ -16,6 +16,7 @@ from torch import Tensor
 
 from facenormals.core.check import check_finite, check_floating, check_shape
 from facenormals.energy import landmark_residuals
+from facenormals.fitting.robust import cauchy_weights, check_scale
 from facenormals.geometry import (
     euler_rotation_derivatives,
     euler_to_rotation_matrix,
@@ -194,8 +195,7 @@ def prealign_pose(
                 f"landmarks: view {view} has {count} visible landmarks; the pose needs at least 4 "
                 "(is there a face in this view?)"
             )
-    if robust_scale is not None and not robust_scale > 0:
-        raise ValueError(f"robust_scale: expected a number > 0 or None, got {robust_scale!r}")
+    check_scale("robust_scale", robust_scale)
     if init not in ("pnp", "multistart"):
         raise ValueError(f"init: expected 'pnp' or 'multistart', got {init!r}")
     out_dtype = landmarks.dtype
@@ -246,7 +246,7 @@ def prealign_pose(
         return landmark_residuals(uv, landmarks, mask)
 
     for _ in range(robust_rounds if robust_scale is not None else 0):
-        sqrt_w = (1.0 / (1.0 + (view_residuals(x).norm(dim=-1) / robust_scale).square())).sqrt()[..., None]
+        sqrt_w = cauchy_weights(view_residuals(x).norm(dim=-1), robust_scale).sqrt()[..., None]
         weighted = levenberg_marquardt(
             lambda z, w=sqrt_w: (view_residuals(z) * w).flatten(1), x,
             jacobian_fn=lambda z, w=sqrt_w: (landmark_pose_jacobian(model_points, z, intrinsics, mask)

@@ -38,6 +38,7 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 from facenormals.energy import landmark_residuals, prior_residuals
 from facenormals.energy.residuals import _foreground as map_foreground
 from facenormals.fitting.rings import RingRows, Rings
+from facenormals.fitting.robust import cauchy_weights, check_scale, huber_weights
 from facenormals.geometry import (
     euler_rotation_derivatives,
     euler_to_rotation_matrix,
@@ -297,17 +298,16 @@ class HeadFitProblem:
 
         ``None`` leaves a term's weights at 1. Returns the ``(B, V, S)`` vertex weights.
         """
-        for name, value in (("scale", scale), ("landmark_scale", landmark_scale)):
-            if value is not None and not value > 0:
-                raise ValueError(f"{name}: expected a number > 0 or None, got {value!r}")
+        check_scale("scale", scale)
+        check_scale("landmark_scale", landmark_scale)
         self.vertex_weights = torch.ones_like(self.vertex_weights)
         self.landmark_weights = torch.ones_like(self.landmark_weights)
         if scale is not None and self.weights.normals > 0:
             r_n = self.residual_terms(x)[0] / self.weights.normals**0.5  # (B, V, S, 3), unweighted
-            self.vertex_weights = _huber_weights(r_n.norm(dim=-1), scale)
+            self.vertex_weights = huber_weights(r_n.norm(dim=-1), scale)
         if landmark_scale is not None:
             error = self.landmark_errors(x).nan_to_num(0.0)
-            self.landmark_weights = 1.0 / (1.0 + (error / landmark_scale).square())
+            self.landmark_weights = cauchy_weights(error, landmark_scale)
         return self.vertex_weights
 
     @torch.no_grad()
@@ -518,11 +518,6 @@ class _Geometry:
     valid: Tensor  # (KV, S) inside the image and on the foreground
     landmark_points: Tensor  # (KV, L, 3)
     lm_uv: Tensor  # (KV, L, 2)
-
-
-def _huber_weights(rho: Tensor, scale: float) -> Tensor:
-    """IRLS weights of Huber's loss for residual norms ``rho``: 1 up to ``scale``, then ``scale / rho``."""
-    return torch.where(rho > scale, scale / rho.clamp_min(1e-12), torch.ones_like(rho))
 
 
 def _is_plain(x: Tensor) -> bool:
