@@ -41,6 +41,22 @@ def test_buffers_follow_to():
     assert {"mean", "shape_basis", "shape_std", "faces", "expression_basis", "landmark_indices"} <= names
 
 
+def test_basis_matrix_is_the_vertex_jacobian_and_follows_the_buffers():
+    model = tiny_model()
+    y, e = torch.randn(1, 3, dtype=torch.float64), torch.randn(1, 2, dtype=torch.float64)
+    J = model.basis_matrix(with_expression=True)
+    assert J.shape == (3 * model.num_vertices, 5) and J.is_contiguous()
+    for i in range(model.num_vertices):  # naive loop over vertices and coordinates
+        for j in range(3):
+            expected = torch.cat([model.shape_basis[:, i, j], model.expression_basis[:, i, j]])
+            assert torch.equal(J[3 * i + j], expected)
+    assert_close((J @ torch.cat([y, e], 1)[0]).view(-1, 3), model(y, e)[0] - model.mean)
+    assert model.basis_matrix() is model.basis_matrix() and model.basis_matrix().shape[1] == 3
+    model.shape_basis.mul_(2.0)  # an in-place edit invalidates the cached copy
+    assert torch.equal(model.basis_matrix()[:, 0], model.shape_basis[0].reshape(-1))
+    assert model.to(torch.float32).basis_matrix().dtype == torch.float32
+
+
 def test_landmarks():
     model = tiny_model()
     v = model(torch.randn(2, 3, dtype=torch.float64))

@@ -167,6 +167,30 @@ class MorphableModel(nn.Module):
             )
         return vertices.reshape(batch, self.num_vertices, 3)
 
+    def basis_matrix(self, with_expression: bool = False) -> Tensor:
+        r"""The basis as a Jacobian: row ``3 i + j`` holds :math:`\partial X_{ij} / \partial (y, e)`.
+
+        Fitting code multiplies per-vertex derivative blocks with these rows, which needs them
+        contiguous per vertex; the transposed copy (13 MB for ICT) is made once and reused until a
+        buffer changes (``.to()``, in-place edits).
+
+        Shape:
+            - output: :math:`(3N, K)`, or :math:`(3N, K + E)` with ``with_expression``
+
+        Example:
+            >>> model = MorphableModel(torch.zeros(4, 3), torch.randn(2, 4, 3), torch.tensor([[0, 1, 2]]))
+            >>> J = model.basis_matrix()
+            >>> J.shape, bool((J[3 * 1 + 2] == model.shape_basis[:, 1, 2]).all())
+            (torch.Size([12, 2]), True)
+        """
+        parts = [self.shape_basis] + ([self.expression_basis] if with_expression else [])
+        key = (with_expression,) + tuple((id(p), p._version, p.dtype, p.device) for p in parts)
+        cache = self.__dict__.setdefault("_basis_matrix_cache", {})
+        if cache.get(with_expression, (None,))[0] != key:
+            matrix = torch.cat([p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1)
+            cache[with_expression] = (key, matrix.contiguous())
+        return cache[with_expression][1]
+
     def landmark_vertices(self, vertices: Tensor, names: Sequence[str] | None = None) -> Tensor:
         """Pick the landmark vertices ``(B, L, 3)`` out of ``vertices`` ``(B, N, 3)`` (all, or ``names``)."""
         check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
