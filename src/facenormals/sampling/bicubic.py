@@ -70,6 +70,12 @@ def _keys_weight_derivatives(t: Tensor) -> Tensor:
     return torch.stack([d0, d1, d2, d3], dim=-1)
 
 
+def _contract(taps: Tensor, cols: Tensor, rows: Tensor) -> Tensor:
+    """``out[b, n, c, l, k] = Σ_ij rows[b, n, i, l] taps[b, c, n, i, j] cols[b, n, j, k]``: the taps
+    ``(B, C, N, 4, 4)`` weighted by column weights ``(B, N, 4, K)`` and row weights ``(B, N, 4, L)``."""
+    return torch.einsum("bcnik,bnil->bnclk", torch.einsum("bcnij,bnjk->bcnik", taps, cols), rows)
+
+
 def _check_inputs(image: Tensor, pixels: Tensor) -> None:
     dims = check_shape(image, ["B", "C", "H", "W"], "image")
     check_shape(pixels, ["B", "N", 2], "pixels", dims)
@@ -156,9 +162,7 @@ def sample_bicubic(image: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
     """
     _check_inputs(image, pixels)
     taps, tu, tv, finite, inside = _taps(image, pixels)
-    wu = _keys_weights(tu)
-    wv = _keys_weights(tv)
-    values = torch.einsum("bcnij,bni,bnj->bnc", taps, wv, wu)
+    values = _contract(taps, _keys_weights(tu)[..., None], _keys_weights(tv)[..., None])[..., 0, 0]
     values = torch.where(finite[..., None], values, torch.zeros((), dtype=values.dtype, device=values.device))
     return values, inside
 
@@ -200,14 +204,13 @@ def sample_bicubic_with_gradient(image: Tensor, pixels: Tensor) -> tuple[Tensor,
     """
     _check_inputs(image, pixels)
     taps, tu, tv, finite, inside = _taps(image, pixels)
-    wu = _keys_weights(tu)
-    wv = _keys_weights(tv)
-    du = _keys_weight_derivatives(tu)
-    dv = _keys_weight_derivatives(tv)
-    values = torch.einsum("bcnij,bni,bnj->bnc", taps, wv, wu)
-    grad_u = torch.einsum("bcnij,bni,bnj->bnc", taps, wv, du)
-    grad_v = torch.einsum("bcnij,bni,bnj->bnc", taps, dv, wu)
-    grad = torch.stack([grad_u, grad_v], dim=-1)
+    # Columns first with (w_u, dw_u), then rows with (w_v, dw_v): out[..., l, k] for row weight l and
+    # column weight k holds the value (0, 0), dI/du (0, 1) and dI/dv (1, 0) in two contractions.
+    cols = torch.stack([_keys_weights(tu), _keys_weight_derivatives(tu)], dim=-1)  # (B, N, 4, 2)
+    rows = torch.stack([_keys_weights(tv), _keys_weight_derivatives(tv)], dim=-1)
+    out = _contract(taps, cols, rows)
+    values = out[..., 0, 0]
+    grad = torch.stack([out[..., 0, 1], out[..., 1, 0]], dim=-1)
     zero = torch.zeros((), dtype=values.dtype, device=values.device)
     values = torch.where(finite[..., None], values, zero)
     grad = torch.where(finite[..., None, None], grad, zero)
