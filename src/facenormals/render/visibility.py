@@ -30,7 +30,7 @@ def visible_vertices(
         depth: their camera-frame depths.
         camera_normals: vertex normals in the camera frame.
         camera_points: vertices in the camera frame.
-        zbuffer: the depth map of the same mesh, e.g. ``rasterize_triangles(...).depth``
+        zbuffer: the depth map of the same mesh, e.g. :func:`~facenormals.render.rasterize_depth`
             (``inf`` on background).
         tolerance: depth slack in mm, to allow for the z-buffer's sampling at pixel centres.
         min_facing: cosine margin of the front-facing test; e.g. 0.2 drops grazing vertices near
