@@ -100,3 +100,17 @@ def test_vertex_subset_restricts_the_normal_rows():
     J = problem.jacobian(x)
     torch.testing.assert_close(J, torch.func.jacfwd(problem.residuals)(x).diagonal(dim1=0, dim2=2).permute(2, 0, 1),
                                rtol=1e-7, atol=1e-7)
+
+
+def test_per_subject_vertex_subsets():
+    from facenormals.fitting.subsample import grid_subset
+
+    full, _ = two_subject_problem()
+    subsets = torch.stack([grid_subset(full.model.mean, 8.0), grid_subset(full.model.mean, 12.0)])
+    problem, _ = two_subject_problem(vertex_subset=subsets)
+    for b in range(2):  # each subject uses exactly its own subset's visible vertices
+        used = problem.vis_index[b][problem.vis_valid[b]]
+        assert subsets[b][used].all()
+        assert int(problem.vis_valid[b].sum()) == int((full.vis_valid[b] & subsets[b][full.vis_index[b]]).sum())
+    with pytest.raises(ValueError, match=r"vertex_subset: expected a bool tensor of shape \(N,\) or \(B, N\)"):
+        two_subject_problem(vertex_subset=subsets[:1])

@@ -106,7 +106,8 @@ class HeadFitProblem:
         fit_expression: fit expression coefficients (shared by the views).
         view_weights: ``(B, V)`` extra weight of each view's normal term (e.g. 0 for a view whose
             map has no foreground).
-        vertex_subset: ``(N,)`` bool, the vertices the normal term may use (default: all), e.g.
+        vertex_subset: ``(N,)`` or per subject ``(B, N)`` bool, the vertices the normal term may use
+            (default: all), e.g.
             :func:`~facenormals.fitting.subsample.grid_subset` of the mean head.
     """
 
@@ -232,7 +233,13 @@ class HeadFitProblem:
         Stores the padded per-view vertex lists ``vis_index``, ``vis_valid`` ``(B, V, S)``, resets
         the robust weights (of vertices and landmarks) to 1, and builds each subject's ring structure.
         """
-        used = visible & self.vertex_subset if self.vertex_subset is not None else visible
+        subset = self.vertex_subset
+        if subset is not None:
+            if subset.shape not in ((self.N,), (self.B, self.N)) or subset.dtype != torch.bool:
+                raise ValueError(f"vertex_subset: expected a bool tensor of shape (N,) or (B, N) = ({self.N},) or "
+                                 f"({self.B}, {self.N}), got {subset.dtype} {tuple(subset.shape)}")
+            subset = subset[:, None] if subset.dim() == 2 else subset
+        used = visible & subset if subset is not None else visible
         counts = used.sum(-1)
         size = max(int(counts.max()), 1)
         self.vis_index = torch.argsort((~used).to(torch.uint8), dim=-1, stable=True)[..., :size]
@@ -438,7 +445,9 @@ class HeadFitProblem:
         rows = layout.rows
         values = torch.bmm(left[rows.entry], raw[rows.block])
         values.index_add_(0, layout.diagonal, T[rows.entry[layout.diagonal]])
-        shared = rows.matrix(values.to(dtype), 3 * self.N) @ self._basis(dtype)
+        # Into a fresh buffer: `csr @ dense` zero-fills and copies its result, ~1/3 of the product.
+        shared = x.new_empty(rows.crow.shape[0] - 1, C, dtype=dtype)
+        torch.addmm(shared, rows.matrix(values.to(dtype), 3 * self.N), self._basis(dtype), beta=0.0, out=shared)
 
         # Landmark and prior rows.
         PR_lm, A_lm = self._view_columns(g.landmark_points + t[:, None], R, D, g.K)
