@@ -104,6 +104,8 @@ def test_bad_input(model, head):
         fit_head(obs.normal_maps, obs.landmarks[..., :10, :], model)
     with pytest.raises(ValueError, match="rounds"):
         fit_head(obs.normal_maps, obs.landmarks, model, rounds=0)
+    with pytest.raises(ValueError, match="visibility_rounds: expected >= 1"):
+        fit_head(obs.normal_maps, obs.landmarks, model, visibility_rounds=0)
     with pytest.raises(ValueError, match="landmark_robust_scale: expected a number > 0"):
         fit_head(obs.normal_maps, obs.landmarks, model, landmark_robust_scale=0.0)
     with pytest.raises(ValueError, match="robust_scale: expected a number > 0"):
@@ -149,3 +151,24 @@ def test_spurious_landmarks_are_rejected(model, head):
     assert err_plain > 1.5 * err_robust
     assert float(robust.landmark_rms_px[0, 0]) > 5.0  # the RMS is of the raw errors, outliers included
     assert float(robust.landmark_median_px[0, 0]) < 1.0  # the median is not moved by two outliers
+
+
+@pytest.mark.parametrize("spacing,visibility_rounds,expected", [
+    ((3.0, 0.75), 2, 2),  # the default: the third round keeps the second's visibility
+    ((3.0, 0.75), 3, 3),
+    ((3.0, 0.75), 1, 2),  # a new vertex subset always needs a new visibility
+    ((3.0, 0.75, 1.5), 1, 3),
+])
+def test_visibility_is_recomputed_in_the_first_rounds_and_for_new_subsets(model, head, monkeypatch, spacing,
+                                                                          visibility_rounds, expected):
+    from facenormals.fitting import HeadFitProblem
+
+    calls = []
+    original = HeadFitProblem.update_visibility
+    monkeypatch.setattr(HeadFitProblem, "update_visibility",
+                        lambda self, *a, **k: calls.append(self.vertex_subset) or original(self, *a, **k))
+    obs = render_oracle_views(model, head, [10.0])
+    result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, vertex_spacing=spacing,
+                      visibility_rounds=visibility_rounds)
+    assert len(calls) == expected
+    assert result.visible.shape == (1, 1, model.num_vertices) and result.visible.any()
