@@ -175,8 +175,9 @@ def rasterize_depth(
 ) -> Tensor:
     r"""The z-buffer alone: ``rasterize_triangles(...).depth`` without the face indices and barycentrics.
 
-    Visibility tests need only the nearest depth per pixel; skipping the per-pixel winners makes
-    this about twice as fast. Same arguments and coverage rule as :func:`rasterize_triangles`.
+    Visibility tests need only the nearest depth per pixel; skipping the pass that finds each
+    pixel's winning face and its barycentrics saves ~10 % (the coverage tests dominate). Same
+    arguments and coverage rule as :func:`rasterize_triangles`.
 
     Returns:
         ``(B, H, W)`` camera-frame depth of the nearest surface, ``inf`` on background.
