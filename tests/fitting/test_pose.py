@@ -94,3 +94,30 @@ def test_robust_pose_ignores_spurious_landmarks(init):
     assert robust.rms_px[0] > plain.rms_px[0]  # the RMS of the plain errors: the outliers stay visible
     with pytest.raises(ValueError, match="robust_scale"):
         prealign_pose(uv, points, K, robust_scale=0.0)
+
+
+def test_reweighting_stops_when_the_weights_settle_per_view(monkeypatch):
+    """IRLS stops once no weight moves by more than IRLS_WEIGHT_TOLERANCE; per view, so that a batch
+    gives each view exactly its result alone (a clean view stops while an outlier view goes on)."""
+    import facenormals.fitting.pose as pose
+
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    clean, _, _, K = observe(model, 20.0, noise=0.3, seed=1)
+    bad = clean.clone()
+    bad[0, [0, 7, 15]] += torch.tensor([30.0, -30.0], dtype=torch.float64)
+    solved = []
+    original = pose.levenberg_marquardt
+    monkeypatch.setattr(pose, "levenberg_marquardt", lambda *a, **k: solved.append(a[1].shape[0]) or original(*a, **k))
+    alone, solves = [], []
+    for uv in (clean, bad):
+        solved.clear()
+        alone.append(prealign_pose(uv, points, K, robust_scale=3.0, robust_rounds=5))
+        solves.append(len(solved))
+    assert solves[0] < solves[1] <= 5  # the clean view settles first, within the limit
+    solved.clear()
+    both = prealign_pose(torch.cat([clean, bad]), points, K.repeat(2, 1), robust_scale=3.0, robust_rounds=5)
+    assert solved[0] == 2 and solved[-1] == 1  # the last solves carry only the view still moving
+    for v in range(2):
+        torch.testing.assert_close(both.angles[v], alone[v].angles[0], rtol=0, atol=1e-12)
+        torch.testing.assert_close(both.translation[v], alone[v].translation[0], rtol=0, atol=1e-9)
