@@ -55,6 +55,9 @@ def test_basis_matrix_is_the_vertex_jacobian_and_follows_the_buffers():
     model.shape_basis.mul_(2.0)  # an in-place edit invalidates the cached copy
     assert torch.equal(model.basis_matrix()[:, 0], model.shape_basis[0].reshape(-1))
     assert model.to(torch.float32).basis_matrix().dtype == torch.float32
+    single = model.basis_matrix(dtype=torch.float64)  # another dtype: its own cached copy
+    assert single.dtype == torch.float64 and single is model.basis_matrix(dtype=torch.float64)
+    assert torch.equal(single, model.basis_matrix().double())
 
 
 def test_landmarks():

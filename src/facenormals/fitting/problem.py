@@ -147,10 +147,8 @@ class HeadFitProblem:
         ones = torch.ones(self.B, self.V, dtype=self.dtype, device=device)
         self.view_weights = ones if view_weights is None else view_weights.to(self.dtype)
         self.vertex_subset = vertex_subset
-        self.basis_rows = model.basis_matrix(with_expression=bool(self.E))  # row 3 i + j: d X_ij / d (y, e)
-        self._basis_cast = {self.dtype: self.basis_rows}
         self.lm_index = model.landmark_indices
-        self.basis_landmarks = self.basis_rows.view(self.N, 3, self.C)[self.lm_index]  # (L, 3, C)
+        self.basis_landmarks = self._basis(self.dtype).view(self.N, 3, self.C)[self.lm_index]  # (L, 3, C)
         self.L = self.lm_index.shape[0]
         self.prior_jacobian = self._prior_jacobian()
         self.set_visibility(torch.zeros(self.B, self.V, self.N, dtype=torch.bool, device=device))
@@ -500,10 +498,8 @@ class HeadFitProblem:
         return H, g
 
     def _basis(self, dtype: torch.dtype) -> Tensor:
-        """The basis rows ``(3 N, C)`` in ``dtype``."""
-        if dtype not in self._basis_cast:
-            self._basis_cast[dtype] = self.basis_rows.to(dtype)
-        return self._basis_cast[dtype]
+        """The basis rows ``(3 N, C)`` in ``dtype`` (row ``3 i + j``: d X_ij / d (y, e)), cached on the model."""
+        return self.model.basis_matrix(with_expression=bool(self.E), dtype=dtype)
 
 
 @dataclass

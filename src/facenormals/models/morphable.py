@@ -167,12 +167,13 @@ class MorphableModel(nn.Module):
             )
         return vertices.reshape(batch, self.num_vertices, 3)
 
-    def basis_matrix(self, with_expression: bool = False) -> Tensor:
+    def basis_matrix(self, with_expression: bool = False, dtype: torch.dtype | None = None) -> Tensor:
         r"""The basis as a Jacobian: row ``3 i + j`` holds :math:`\partial X_{ij} / \partial (y, e)`.
 
         Fitting code multiplies per-vertex derivative blocks with these rows, which needs them
-        contiguous per vertex; the transposed copy (13 MB for ICT) is made once and reused until a
-        buffer changes (``.to()``, in-place edits).
+        contiguous per vertex; the transposed copy (13 MB for ICT in float32) is made once per
+        ``dtype`` (default: the model's, e.g. float32 for float32 normal equations of a float64
+        model) and reused until a buffer changes (``.to()``, in-place edits).
 
         Shape:
             - output: :math:`(3N, K)`, or :math:`(3N, K + E)` with ``with_expression``
@@ -184,12 +185,14 @@ class MorphableModel(nn.Module):
             (torch.Size([12, 2]), True)
         """
         parts = [self.shape_basis] + ([self.expression_basis] if with_expression else [])
-        key = (with_expression,) + tuple((id(p), p._version, p.dtype, p.device) for p in parts)
+        dtype = dtype or self.shape_basis.dtype
+        key = tuple((id(p), p._version, p.dtype, p.device) for p in parts)
         cache = self.__dict__.setdefault("_basis_matrix_cache", {})
-        if cache.get(with_expression, (None,))[0] != key:
+        slot = (with_expression, dtype)
+        if cache.get(slot, (None,))[0] != key:
             matrix = torch.cat([p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1)
-            cache[with_expression] = (key, matrix.contiguous())
-        return cache[with_expression][1]
+            cache[slot] = (key, matrix.to(dtype).contiguous())
+        return cache[slot][1]
 
     def landmark_vertices(self, vertices: Tensor, names: Sequence[str] | None = None) -> Tensor:
         """Pick the landmark vertices ``(B, L, 3)`` out of ``vertices`` ``(B, N, 3)`` (all, or ``names``)."""
