@@ -38,7 +38,7 @@ DEFAULT_FOCAL = 300.0
 
 #: Energy weights of the fit to the shipped network's maps: the paper's λN and λZ, and a shape prior
 #: λP chosen on validation renders by ``benchmarks/tune_network_fit.py`` (docs/model_card.md).
-#: The paper's λP = 0.4 lets the fit follow the network's errors (its normals are ~14 deg off on
+#: The paper's λP = 0.4 lets the fit follow the network's errors (its normals are ~13 deg off on
 #: average), which gives heads no better than the mean head.
 NETWORK_FIT_WEIGHTS = FitWeights(normals=1.0, landmarks=0.8, prior=2.0)
 
