@@ -7,6 +7,7 @@ import torch
 import torch.multiprocessing as mp
 
 from facenormals.training import TrainConfig, load_checkpoint, train
+from facenormals.training.distributed import init_distributed
 
 from .conftest import TinyHeads
 
@@ -40,3 +41,18 @@ def test_two_process_ddp_on_cpu(tmp_path):
     assert seen == {0: 12, 1: 12}  # 3 steps x 2 images x 2 processes
     state = load_checkpoint(tmp_path / "run" / "last.pt")
     assert state["world_size"] == 2 and state["samples_seen"] == 12
+
+
+def test_a_bare_cuda_device_names_this_process_gpu(monkeypatch):
+    # torch.cuda.set_device refuses an index-less "cuda"; init_distributed must pass cuda:LOCAL_RANK
+    chosen = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "set_device", lambda device: chosen.append(torch.device(device)))
+    for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    assert init_distributed("cuda").device == torch.device("cuda:0")
+    assert init_distributed("auto").device == torch.device("cuda:0")
+    assert init_distributed("cuda:3").device == torch.device("cuda:3")
+    monkeypatch.setenv("LOCAL_RANK", "2")
+    assert init_distributed("cuda").device == torch.device("cuda:2")
+    assert all(d.index is not None for d in chosen)

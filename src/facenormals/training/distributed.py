@@ -65,7 +65,8 @@ def init_distributed(device: str = "auto") -> DistContext:
         if not torch.cuda.is_available():
             raise ValueError(f"device: {device!r} requested but torch has no CUDA device here "
                              f"(torch {torch.__version__}); use --device cpu")
-        dev = torch.device(f"cuda:{local}") if device == "cuda" and world > 1 else torch.device(device)
+        # a bare "cuda" names this process's GPU: torch.cuda.set_device needs an index
+        dev = torch.device(f"cuda:{local}") if device == "cuda" else torch.device(device)
         torch.cuda.set_device(dev)
     else:
         dev = torch.device("cpu")
