@@ -15,6 +15,9 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 @pytest.fixture(params=DEVICES)
 def device(request) -> torch.device:
+    # an indexed device: tensors report "cuda:0", and torch.device("cuda") != torch.device("cuda:0")
+    if request.param == "cuda":
+        return torch.device("cuda", torch.cuda.current_device())
     return torch.device(request.param)
 
 

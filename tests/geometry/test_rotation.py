@@ -24,7 +24,7 @@ def test_against_scipy_intrinsic_yxz(dtype, device):
     # R = R_y(yaw) R_x(pitch) R_z(roll) is scipy's intrinsic "YXZ" with angles (yaw, pitch, roll).
     ref = Rotation.from_euler("YXZ", np.stack([a[:, 2], a[:, 1], a[:, 0]], -1)).as_matrix()
     assert R.dtype == dtype and R.device == device
-    assert_close(R, torch.from_numpy(ref), atol=1e-6 if dtype == torch.float32 else 1e-12)
+    assert_close(R.cpu(), torch.from_numpy(ref), atol=1e-6 if dtype == torch.float32 else 1e-12)
 
 
 def test_elementary_rotations_and_signs():
