@@ -260,6 +260,8 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         train.add_argument(f"--{name}", type=kind, default=None, help=text)
     train.add_argument("--device", default=None, help="auto (default), cpu, cuda or cuda:N")
+    train.add_argument("--init", default=None, metavar="WEIGHTS",
+                       help="start a new run from these weights (fine-tuning); ignored when OUT/last.pt exists")
     train.add_argument("--export", default=None, metavar="WEIGHTS", help="also export the averaged weights (fp16)")
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.set_defaults(func=_cmd_train)

@@ -88,6 +88,20 @@ def test_export_weights_round_trip(tmp_path):
     assert calibrated.metadata["landmark_threshold_samples"] == 8
 
 
+def test_init_starts_a_new_run_from_exported_weights(tmp_path):
+    first = train(_config(tmp_path / "a", steps=3), TinyHeads(8), progress=False)
+    weights = export_weights(first.checkpoint, tmp_path / "w.pt", dtype=torch.float32)
+    config = _config(tmp_path / "b", steps=1, lr=1e-12, warmup_steps=0, init=str(weights))
+    second = train(config, TinyHeads(8), progress=False)
+    state = load_checkpoint(second.checkpoint)
+    assert state["step"] == 1  # a new schedule, not a resume of the first run
+    start = load_checkpoint(first.checkpoint)["ema"]
+    for key, value in state["model"].items():  # one step at lr 1e-12 leaves the loaded weights
+        torch.testing.assert_close(value, start[key], rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="init: .*w.pt"):
+        train(_config(tmp_path / "c", steps=1, base_channels=8, init=str(weights)), TinyHeads(8), progress=False)
+
+
 def test_bad_checkpoint_and_weight_files_name_the_file(tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")

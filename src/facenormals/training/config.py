@@ -46,6 +46,9 @@ class TrainConfig:
         eval_samples: held-out samples scored at each evaluation (all at the end of the run).
         max_minutes: stop cleanly (with a checkpoint) after this wall time; resume later.
         base_channels, depth: the network's width and depth.
+        init: a weight file (:func:`~facenormals.training.export_weights`) whose weights start a
+            new run, both the trained and the averaged copy (fine-tuning, or a new schedule on
+            other hardware); its architecture must match. Ignored when ``out/last.pt`` exists.
     """
 
     data: str
@@ -74,6 +77,7 @@ class TrainConfig:
     max_minutes: float | None = None
     base_channels: int = 16
     depth: int = 5
+    init: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "log_every", "checkpoint_every", "eval_every", "eval_samples",

@@ -117,6 +117,20 @@ def _float_outputs(out: UNetOutput) -> UNetOutput:
     return UNetOutput(*(t.float() for t in out))
 
 
+def _initialise_from(net: NormalLandmarkUNet, ema: NormalLandmarkUNet, config: TrainConfig) -> None:
+    """Load ``config.init`` (a weight file) into the network and its moving average."""
+    from facenormals.nn import load_weights
+
+    start = load_weights(config.init)
+    weights = start.state_dict()
+    if start.channels != net.channels or start.num_landmarks != net.num_landmarks:
+        raise ValueError(f"init: {config.init} holds a network with channels {start.channels} and "
+                         f"{start.num_landmarks} landmarks; the run has channels {net.channels} and "
+                         f"{net.num_landmarks} landmarks (--base-channels, --depth)")
+    net.load_state_dict(weights)
+    ema.load_state_dict(weights)
+
+
 def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset | None = None,
           progress: bool = True) -> TrainSummary:
     """Train (or resume training) a :class:`~facenormals.nn.NormalLandmarkUNet`.
@@ -171,6 +185,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         if ctx.is_main:
             for name in ("log.csv", "eval.csv"):
                 _truncate_csv(out / name, step)
+    elif config.init is not None:
+        _initialise_from(net, ema, config)
     model = net
     if ctx.distributed:
         model = torch.nn.parallel.DistributedDataParallel(
