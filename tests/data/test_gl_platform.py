@@ -54,3 +54,28 @@ def test_missing_pyrender_is_a_headless_gl_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyrender", None)  # makes `import pyrender` fail
     with pytest.raises(HeadlessGLError, match=r"pip install 'facenormals\[render\]'"):
         create_gl_context()
+
+
+def test_pyrender_import_is_headless_without_a_display():
+    # a fresh interpreter without DISPLAY: pyglet (imported by pyrender) must take its headless
+    # backend, and a failing import is a HeadlessGLError, not pyglet's AttributeError from deep inside
+    code = (
+        "import builtins, os, sys\n"
+        "os.environ.pop('DISPLAY', None); os.environ.pop('PYGLET_HEADLESS', None)\n"
+        "os.environ['PYOPENGL_PLATFORM'] = 'egl'\n"
+        "real = builtins.__import__\n"
+        "def fake(name, *args, **kwargs):\n"
+        "    if name == 'pyrender':\n"
+        "        raise AttributeError(\"'NoneType' object has no attribute 'XRenderFindVisualFormat'\")\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = fake\n"
+        "from facenormals.data.gl_platform import HeadlessGLError, create_gl_context\n"
+        "try:\n"
+        "    create_gl_context()\n"
+        "except HeadlessGLError as error:\n"
+        "    assert 'PYGLET_HEADLESS' in str(error) and 'AttributeError' in str(error), error\n"
+        "else:\n"
+        "    raise SystemExit('no error')\n"
+        "assert os.environ['PYGLET_HEADLESS'] == 'true'\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -170,11 +170,20 @@ def create_gl_context() -> _Context:
             says what to install.
     """
     platform = select_gl_platform()
+    if platform == "egl" and not os.environ.get("DISPLAY"):
+        # pyrender imports pyglet, whose default backend loads X libraries at import; a headless
+        # GPU server often has none (seen on an H100 machine: libXrender missing)
+        os.environ.setdefault("PYGLET_HEADLESS", "true")
     try:
         import pyrender  # noqa: F401
     except ImportError as error:
         raise HeadlessGLError(
             f"rendering needs pyrender ({error}); install it with `pip install 'facenormals[render]'`"
+        ) from error
+    except Exception as error:  # noqa: BLE001 - pyglet fails with AttributeError/OSError on missing X libraries
+        raise HeadlessGLError(
+            f"importing pyrender failed ({type(error).__name__}: {error}); without a display set "
+            "PYGLET_HEADLESS=true, with one check its X libraries (libX11, libXrender)"
         ) from error
     try:
         return _Context(platform)
