@@ -277,6 +277,7 @@ def nice_step(span: float) -> float:
 
 
 def plot(series: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int], str]], title: str, log_y: bool = False,
+         x_label: str = "million samples seen",
          size: tuple[int, int] = (440, 300)) -> np.ndarray:
     """A line plot drawn with OpenCV: ``series`` of ``(x, y, rgb, name)``; log10 y axis if ``log_y``."""
     import cv2
@@ -325,7 +326,9 @@ def plot(series: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int], str]],
         cv2.putText(img, label, (x_text, height - bottom + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.38, black, 1,
                     cv2.LINE_AA)
     cv2.rectangle(img, (left, top), (width - right, height - bottom), black, 1)
-    cv2.putText(img, "step", (width // 2 - 12, height - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, black, 1, cv2.LINE_AA)
+    label_width = cv2.getTextSize(x_label, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)[0][0]
+    cv2.putText(img, x_label, (width // 2 - label_width // 2, height - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, black, 1,
+                cv2.LINE_AA)
     cv2.putText(img, title, (left, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, black, 1, cv2.LINE_AA)
     x_text = left
     for x, y, rgb, name in series:
@@ -342,21 +345,24 @@ def plot(series: list[tuple[np.ndarray, np.ndarray, tuple[int, int, int], str]],
 
 
 def training_figure(run: Path) -> None:
-    """Losses (log.csv) and held-out metrics of the averaged weights (eval.csv) of a training run."""
+    """Losses (log.csv) and held-out metrics of the averaged weights (eval.csv) of a training run,
+    against millions of samples seen (runs of different batch sizes share one axis)."""
     log = read_csv(run / "log.csv")
+    x = log["samples_seen"] / 1e6
     blue, orange, green, red = (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40)
-    panels = [plot([(log["step"], log["loss"], blue, "total"), (log["step"], log["normals"], orange, "L_N"),
-                    (log["step"], log["landmarks"], green, "L_Z (unweighted)"), (log["step"], log["foreground"], red, "foreground")],
-                   "training loss (log.csv)", log_y=True)]
+    panels = [plot([(x, log["loss"], blue, "total"), (x, log["normals"], orange, "L_N"),
+                    (x, log["landmarks"], green, "L_Z (unweighted)"), (x, log["foreground"], red, "foreground")],
+                   "training loss", log_y=True)]
     if (run / "eval.csv").exists():
         ev = read_csv(run / "eval.csv")
         if ev:
-            panels.append(plot([(ev["step"], ev["normal_mean_deg"], blue, "mean"),
-                                (ev["step"], ev["normal_median_deg"], orange, "median")],
-                               "held out: normal angle, deg (eval.csv)"))
-            panels.append(plot([(ev["step"], ev["landmark_mean_px"], blue, "mean"),
-                                (ev["step"], ev["landmark_median_px"], orange, "median")],
-                               "held out: landmark error, px (eval.csv)"))
+            xe = ev["samples_seen"] / 1e6
+            panels.append(plot([(xe, ev["normal_mean_deg"], blue, "mean"),
+                                (xe, ev["normal_median_deg"], orange, "median")],
+                               "held out: normal angle, deg"))
+            panels.append(plot([(xe, ev["landmark_mean_px"], blue, "mean"),
+                                (xe, ev["landmark_median_px"], orange, "median")],
+                               "held out: landmark error, px"))
     write_png("training_curves.png", grid([panels]))
 
 
