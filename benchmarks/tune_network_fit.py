@@ -1,14 +1,16 @@
-"""Choose the shape-prior weight λP of the fit to the *network's* maps on validation heads.
+"""Choose the weights λN and λP of the fit to the *network's* maps on validation heads.
 
-The paper's λP = 0.4 suits maps as exact as the paper's network's; a network whose normals are
-tens of degrees off needs a stronger prior, or the fit follows its errors. This script renders
+The paper's λN = 1, λP = 0.4 suit maps as exact as the paper's network's; a network whose normals
+are ten degrees off needs a weaker normal term or a stronger prior, or the fit follows its errors. This script renders
 validation heads of the held-out seed at indices 200,000+ (disjoint from the heads
 ``accuracy_network.py`` reports on, 100,000+, and from the 2,000 held-out metric images), runs the
-network once per view, and fits each candidate λP (single view, |yaw| <= 30 deg, the recipe of
+network once per view, and fits each candidate (λN, λP) pair (single view, |yaw| <= 30 deg, the recipe of
 ``facenormals reconstruct`` otherwise), scored after similarity alignment beside the mean head.
-The chosen value goes into ``facenormals.reconstruct.NETWORK_FIT_WEIGHTS``.
+The chosen values go into ``facenormals.reconstruct.NETWORK_FIT_WEIGHTS``. Each row also gives
+the mean per-head change of the p2p RMSE against the first row, with its standard error: the
+spread between heads is large, so a difference of one or two standard errors is not a finding.
 
-    python benchmarks/tune_network_fit.py --heads 16 --priors 0.4,1,2,5,10
+    python benchmarks/tune_network_fit.py --heads 32 --normals 1,0.25,0.1,0 --priors 1,2
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--heads", type=int, default=16)
     parser.add_argument("--priors", default="0.4,1,2,5,10", help="comma-separated candidate λP")
+    parser.add_argument("--normals", default="1", help="comma-separated candidate λN")
     parser.add_argument("--weights", default=None, help="network weights (default: the shipped ones)")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args()
@@ -57,9 +60,11 @@ def main() -> None:
     intrinsics = torch.tensor([[DEFAULT_FOCAL, (size - 1) / 2, (size - 1) / 2]])
     lines = [f"{args.heads} validation heads (seed 1, indices 200,000+), network step {net.metadata.get('step')}; "
              f"mean head {b_p2p:.3f} / {b_corr:.3f} mm", "",
-             "| λP | p2p RMSE, similarity | correspondence RMSE, similarity | ratio to mean head |", "|---|---|---|---|"]
-    for prior in (float(p) for p in args.priors.split(",")):
-        weights = dataclasses.replace(NETWORK_FIT_WEIGHTS, prior=prior)
+             "| λN | λP | p2p RMSE, similarity | correspondence RMSE, similarity | ratio to mean head "
+             "| p2p change per head vs the first row (± s.e.) |", "|---|---|---|---|---|---|"]
+    first = None
+    for normal, prior in ((float(n), float(p)) for n in args.normals.split(",") for p in args.priors.split(",")):
+        weights = dataclasses.replace(NETWORK_FIT_WEIGHTS, normals=normal, prior=prior)
         rows = []
         for (n, lm), t in zip(views, truths):
             try:
@@ -68,7 +73,12 @@ def main() -> None:
                 print(f"fit failed ({error}); scored as the mean head")
                 rows.append(score(model, model.mean, t))
         p2p, corr = (statistics.mean(r[k] for r in rows) for k in ("p2p sim", "corr sim"))
-        lines.append(f"| {prior:g} | {p2p:.3f} | {corr:.3f} | {p2p / b_p2p:.2f} / {corr / b_corr:.2f} |")
+        per_head = [r["p2p sim"] for r in rows]
+        first = per_head if first is None else first
+        change = [a - b for a, b in zip(per_head, first)]
+        error = statistics.stdev(change) / math.sqrt(len(change)) if len(change) > 1 else 0.0
+        lines.append(f"| {normal:g} | {prior:g} | {p2p:.3f} | {corr:.3f} | {p2p / b_p2p:.3f} / {corr / b_corr:.3f} "
+                     f"| {statistics.mean(change):+.3f} ± {error:.3f} |")
         print(lines[-1], flush=True)
     print("\n".join(lines))
 
