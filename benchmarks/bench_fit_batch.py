@@ -50,17 +50,17 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    cpu_model = load_model(args.model, dtype=torch.float32)  # renders the oracle maps
-    model = load_model(args.model, dtype=torch.float32).to(device)  # nn.Module.to moves in place
+    model = load_model(args.model, dtype=torch.float32)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or platform.machine()
     print(f"device: {device} ({name}), torch {torch.__version__}, {torch.get_num_threads()} CPU threads; "
-          f"model {cpu_model.name}: {cpu_model.num_vertices} vertices, {cpu_model.num_shape} shape components")
+          f"model {model.name}: {model.num_vertices} vertices, {model.num_shape} shape components")
     g = torch.Generator().manual_seed(0)
     largest = max(args.batch)
     heads = []
     for _ in range(largest):
         yaw = float((torch.rand(1, generator=g) * 2 - 1) * 30.0)
-        heads.append(render_oracle_views(cpu_model, cpu_model.sample_shape_coeffs(1, generator=g), [yaw]))
+        heads.append(render_oracle_views(model, model.sample_shape_coeffs(1, generator=g), [yaw]))
+    model.to(device)  # after rendering the oracle maps on the CPU (nn.Module.to moves in place)
     maps = torch.cat([h.normal_maps for h in heads]).to(device)
     lms = torch.cat([h.landmarks for h in heads]).to(device)
     K = torch.cat([h.intrinsics for h in heads]).to(device)
@@ -79,6 +79,7 @@ def main() -> None:
         batched = timed(lambda: fit(0, largest), device, 1)
         print(f"\nB={largest}: one batch {batched * 1e3:.0f} ms vs {largest} sequential fits {sequential * 1e3:.0f} ms: "
               f"{sequential / batched:.2f}x throughput")
+
 
 if __name__ == "__main__":
     main()
