@@ -121,3 +121,43 @@ def test_reweighting_stops_when_the_weights_settle_per_view(monkeypatch):
     for v in range(2):
         torch.testing.assert_close(both.angles[v], alone[v].angles[0], rtol=0, atol=1e-12)
         torch.testing.assert_close(both.translation[v], alone[v].translation[0], rtol=0, atol=1e-9)
+
+
+def test_a_view_where_pnp_fails_does_not_change_the_others(monkeypatch):
+    """OpenCV failing on one view gives that view the yaw starts; every other view keeps its SQPnP
+    start, so each view's pose is the one it gets alone."""
+    import cv2
+
+    model = builtin_head_model(dtype=torch.float64)
+    views = [observe(model, yaw, noise=0.5, seed=i) for i, yaw in enumerate((-50.0, 10.0, 70.0))]
+    uv = torch.cat([v[0] for v in views])
+    K = torch.cat([v[3] for v in views])
+    points = model.mean[model.landmark_indices]
+    alone = [prealign_pose(uv[i:i + 1], points, K[i:i + 1], robust_scale=3.0) for i in range(3)]
+    real = cv2.solvePnP
+    calls = []
+
+    def failing_on_the_second_view(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise cv2.error("mock failure")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "solvePnP", failing_on_the_second_view)
+    batch = prealign_pose(uv, points, K, robust_scale=3.0)
+    assert len(calls) == 3
+    for i in (0, 2):
+        torch.testing.assert_close(batch.angles[i], alone[i].angles[0], rtol=0, atol=1e-9)
+        torch.testing.assert_close(batch.translation[i], alone[i].translation[0], rtol=0, atol=1e-7)
+    # the failed view still converges from the yaw starts
+    assert abs(math.degrees(float(batch.angles[1, 2] - views[1][1][0, 2]))) < 4.0
+    monkeypatch.undo()
+    multistart = prealign_pose(uv[1:2], points, K[1:2], init="multistart", robust_scale=3.0)
+    torch.testing.assert_close(batch.angles[1], multistart.angles[0], rtol=0, atol=1e-9)
+
+
+def test_yaw_starts_must_not_be_empty():
+    model = builtin_head_model(dtype=torch.float64)
+    uv, _, _, K = observe(model, 0.0)
+    with pytest.raises(ValueError, match="yaw_starts_deg: expected at least one"):
+        prealign_pose(uv, model.mean[model.landmark_indices], K, init="multistart", yaw_starts_deg=[])

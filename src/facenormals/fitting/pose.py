@@ -102,12 +102,14 @@ def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tenso
     return (R.transpose(1, 2) @ camera[..., None])[..., 0] - centroid3
 
 
-def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> Tensor | None:
-    """OpenCV SQPnP poses ``(B, 6)`` as LM starts; ``None`` if OpenCV fails for any view."""
+def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:
+    """OpenCV SQPnP poses ``(B, 6)`` as LM starts, and ``(B,)`` where OpenCV gave one (a failed view
+    gets zeros there, and the caller gives it the yaw starts)."""
     import cv2
     import numpy as np
 
-    out = []
+    out = np.zeros((points.shape[0], 6))
+    ok = np.zeros(points.shape[0], dtype=bool)
     for b in range(points.shape[0]):
         keep = mask[b].cpu().numpy()
         obj = points[b].detach().cpu().double().numpy()[keep]
@@ -115,15 +117,17 @@ def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tenso
         f, u0, v0 = intrinsics[b].tolist()
         camera = np.array([[f, 0.0, u0], [0.0, f, v0], [0.0, 0.0, 1.0]])
         try:
-            ok, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
+            found, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
         except cv2.error:
-            return None
-        if not ok or not np.all(np.isfinite(rvec)) or tvec[2, 0] <= 0:
-            return None
+            continue
+        if not found or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)) or tvec[2, 0] <= 0:
+            continue
         R = cv2.Rodrigues(rvec)[0]
-        out.append(np.concatenate([np.zeros(3), R.T @ tvec[:, 0]]))
-        out[-1][:3] = rotation_matrix_to_euler(torch.from_numpy(R)[None])[0].numpy()
-    return torch.tensor(np.stack(out), dtype=points.dtype, device=points.device)
+        out[b, :3] = rotation_matrix_to_euler(torch.from_numpy(R)[None])[0].numpy()
+        out[b, 3:] = R.T @ tvec[:, 0]
+        ok[b] = True
+    return (torch.tensor(out, dtype=points.dtype, device=points.device),
+            torch.tensor(ok, dtype=torch.bool, device=points.device))
 
 
 def prealign_pose(
@@ -139,9 +143,10 @@ def prealign_pose(
 ) -> PoseEstimate:
     r"""Head pose of a fixed shape from 2D landmarks, robust to any yaw in ±90°.
 
-    The start is OpenCV's SQPnP solution (a globally optimal PnP, ``init="pnp"``, falling back to
-    the yaw starts if OpenCV fails) or several yaw starts solved as one batch (``init="multistart"``,
-    the best start wins). LM with an analytic Jacobian then minimises the reprojection error.
+    The start is OpenCV's SQPnP solution (a globally optimal PnP, ``init="pnp"``; a view where
+    OpenCV fails gets the yaw starts) or several yaw starts solved as one batch (``init="multistart"``,
+    the best start wins). LM with an analytic Jacobian then minimises the reprojection error. Each
+    view's result is what it would get alone, whatever else is in the batch.
 
     Args:
         landmarks: detected 2D landmarks ``b_j`` in pixels (NaN allowed where ``mask`` is False).
@@ -203,29 +208,32 @@ def prealign_pose(
     check_scale("robust_scale", robust_scale)
     if init not in ("pnp", "multistart"):
         raise ValueError(f"init: expected 'pnp' or 'multistart', got {init!r}")
+    if len(yaw_starts_deg) == 0:
+        raise ValueError("yaw_starts_deg: expected at least one yaw start, got none")
     out_dtype = landmarks.dtype
     dtype = torch.float64  # a 6-parameter problem: float64 costs nothing and converges in fewer steps
     landmarks = landmarks.to(dtype)
     model_points = model_points.to(dtype)
     intrinsics = intrinsics.to(dtype)
-    pnp = _pnp_starts(model_points, landmarks, mask, intrinsics) if init == "pnp" else None
-    if pnp is not None:
-        yaw_starts_deg = [0.0]  # one start per view
-    batch, starts = dims["B"], len(yaw_starts_deg)
+    batch = dims["B"]
+    # Starts: the SQPnP pose of each view where OpenCV gives one, the yaw starts elsewhere (per view,
+    # so that a view's result never depends on the others in the batch).
+    if init == "pnp":
+        pnp, has_pnp = _pnp_starts(model_points, landmarks, mask, intrinsics)
+    else:
+        pnp = torch.zeros(batch, 6, dtype=dtype, device=landmarks.device)
+        has_pnp = torch.zeros(batch, dtype=torch.bool, device=landmarks.device)
+    rest = (~has_pnp).nonzero().squeeze(1)
     yaws = torch.tensor(yaw_starts_deg, dtype=dtype, device=landmarks.device).deg2rad()
-    angles0 = torch.zeros(starts, batch, 3, dtype=dtype, device=landmarks.device)
+    multi = rest.repeat(len(yaws))  # start-major: every failed view at the first yaw, then the next
+    angles0 = torch.zeros(len(yaws), rest.shape[0], 3, dtype=dtype, device=landmarks.device)
     angles0[..., 2] = yaws[:, None]
     angles0 = angles0.reshape(-1, 3)
-
-    def rep(x: Tensor) -> Tensor:
-        return x.repeat(starts, *([1] * (x.dim() - 1)))
-
-    pts, targets, msk, K = rep(model_points), rep(landmarks), rep(mask), rep(intrinsics)
-    if pnp is not None:
-        x0 = pnp
-    else:
-        t0 = _initial_translation(pts, targets, msk, euler_to_rotation_matrix(angles0), K)
-        x0 = torch.cat([angles0, t0], dim=-1)
+    t0 = _initial_translation(model_points[multi], landmarks[multi], mask[multi], euler_to_rotation_matrix(angles0),
+                              intrinsics[multi])
+    owner = torch.cat([has_pnp.nonzero().squeeze(1), multi])
+    x0 = torch.cat([pnp[has_pnp], torch.cat([angles0, t0], dim=-1)])
+    pts, targets, msk, K = model_points[owner], landmarks[owner], mask[owner], intrinsics[owner]
 
     def residuals(x: Tensor) -> Tensor:
         uv, _ = project_points(pts, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], K)
@@ -240,10 +248,12 @@ def prealign_pose(
         ftol=1e-7,
         xtol=1e-7,
     )
-    cost = result.cost.view(starts, batch)
-    cost = torch.where(result.status.view(starts, batch) == LMStatus.FAILED, math.inf, cost)
-    best = cost.argmin(0)
-    pick = best * batch + torch.arange(batch, device=best.device)
+    # the best start of each view: a (views, starts) table of costs, inf where a start is another
+    # view's; a failed start costs the largest finite value (a view whose starts all failed keeps its first)
+    cost = torch.where(result.status == LMStatus.FAILED, torch.finfo(dtype).max, result.cost)
+    table = torch.full((batch, owner.shape[0]), math.inf, dtype=dtype, device=cost.device)
+    table[owner, torch.arange(owner.shape[0], device=owner.device)] = cost
+    pick = table.argmin(1)
     x, status = result.x[pick], result.status[pick]
 
     def view_residuals(z: Tensor, i: Tensor | slice = slice(None)) -> Tensor:  # (B, L, 2) of the views i
