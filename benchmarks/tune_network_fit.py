@@ -25,11 +25,12 @@ import torch
 
 from accuracy_network import images, score
 from facenormals.data import SynthConfig, SyntheticHeadGenerator
-from facenormals.fitting import fit_head
+from facenormals.fitting import drop_hidden_landmarks, fit_head
 from facenormals.models import load_model
 from facenormals.nn import load_weights
 from facenormals.reconstruct import NETWORK_FIT_WEIGHTS, predict_maps
-from facenormals.reconstruct.pipeline import DEFAULT_FOCAL, landmark_channels
+from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
+from facenormals.reconstruct.pipeline import landmark_channels
 
 
 def main() -> None:
@@ -52,12 +53,14 @@ def main() -> None:
         yaw = math.radians(rng.uniform(-30, 30))
         batch = generator.generate(1, [200_000 + i], angles=[(0.0, 0.0, yaw)])
         maps = predict_maps(net, images(batch))
-        views.append((maps.normal_maps, maps.landmarks[:, channels]))
+        size = maps.normal_maps.shape[-1]
+        intrinsics = torch.tensor([[DEFAULT_FOCAL, (size - 1) / 2, (size - 1) / 2]])
+        landmarks = maps.landmarks[:, channels]
+        kept = drop_hidden_landmarks(landmarks, maps.found[:, channels], model, intrinsics, (size, size))
+        views.append((maps.normal_maps, landmarks.masked_fill(~kept[..., None], float("nan"))))
         truths.append(model(torch.from_numpy(batch.shape_coeffs))[0])
     base = [score(model, model.mean, t) for t in truths]
     b_p2p, b_corr = (statistics.mean(r[k] for r in base) for k in ("p2p sim", "corr sim"))
-    size = views[0][0].shape[-1]
-    intrinsics = torch.tensor([[DEFAULT_FOCAL, (size - 1) / 2, (size - 1) / 2]])
     lines = [f"{args.heads} validation heads (seed 1, indices 200,000+), network step {net.metadata.get('step')}; "
              f"mean head {b_p2p:.3f} / {b_corr:.3f} mm", "",
              "| λN | λP | p2p RMSE, similarity | correspondence RMSE, similarity | ratio to mean head "

@@ -38,8 +38,8 @@ PUBLIC = {
                          "ICPResult", "apply_similarity", "closest_points_on_mesh", "correspondence_errors",
                          "depth_errors", "depth_statistics", "evaluate_reconstruction", "fit_similarity",
                          "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "summarise"],
-    "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "fit_head",
-                            "landmark_pose_jacobian", "prealign_pose"],
+    "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "drop_hidden_landmarks",
+                            "fit_head", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"],
 }
 
 # The names the foundation issue makes binding: importable from the top level and their subpackage.

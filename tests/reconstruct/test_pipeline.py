@@ -12,6 +12,7 @@ from torch import nn
 from facenormals.data import landmark_maps
 from facenormals.fitting import FitWeights
 from facenormals.fitting.oracle import render_oracle_views
+from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, builtin_head_model
 from facenormals.nn import NormalLandmarkUNet, UNetOutput
 from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
@@ -57,6 +58,29 @@ def test_reconstruct_views_recovers_the_oracle_head(oracle):
     face = model.face_region
     assert err[face].mean() < 0.5 * base[face].mean()
     torch.testing.assert_close(fit.angles[0, :, 2], views.angles[0, :, 2], atol=0.03, rtol=0)
+
+
+def test_detections_the_turned_head_hides_are_dropped_before_the_fit(oracle):
+    """A network that reports every landmark, hidden or not, at its projection: the recipe drops those
+    the pre-aligned head hides and fits with the rest; ``drop_hidden=False`` keeps them."""
+    model, _, order = oracle
+    y = model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(5))
+    views = render_oracle_views(model, y, [70.0])
+    R = euler_to_rotation_matrix(views.angles[0])
+    everything, _ = project_points(views.vertices[:, model.landmark_indices], R, views.translation[0], views.intrinsics[0])
+    net = OracleNet(views.normal_maps[0], everything[:, order])
+    focal = float(views.intrinsics[0, 0, 0])
+    messages = []
+    maps, _ = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, mirror=False, log=messages.append)
+    truly, found = views.landmark_mask[0, 0][order], maps.found[0]
+    # conservative (10 mm behind the mean head's surface): no visible landmark is dropped, and of the
+    # hidden ones only those near the silhouette survive (here the far nose wing and the chin)
+    assert not bool((truly & ~found).any()) and int((found & ~truly).sum()) <= 2
+    assert int((~found).sum()) >= 6
+    assert not bool(maps.found.all()) and bool(torch.isnan(maps.landmarks[~maps.found]).all())
+    assert any("hidden by the pre-aligned head" in m for m in messages)
+    kept, _ = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, mirror=False, drop_hidden=False)
+    assert bool(kept.found.all())
 
 
 def test_landmark_channels_are_matched_by_name(oracle):

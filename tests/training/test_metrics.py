@@ -1,6 +1,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 from torch import nn
 
@@ -81,3 +82,38 @@ def test_per_landmark_thresholds_separate_what_one_cannot():
     net.metadata = {"landmark_threshold": per_channel}
     assert torch.equal(landmark_threshold(net), torch.tensor(per_channel))
     assert evaluate_network(net, data, mirror=False).visibility_accuracy == 1.0
+
+
+def test_posed_visibility_scores_the_decisions_after_dropping_hidden_landmarks():
+    """``visibility_accuracy_posed`` equals the score of the detections that drop_hidden_landmarks keeps,
+    recomputed here from the same maps."""
+    from facenormals.data import landmarks_from_maps
+    from facenormals.fitting import drop_hidden_landmarks
+    from facenormals.models import builtin_head_model
+
+    data = TinyHeads(6)
+    net = Cheat(data, gain=0.6, floor=0.3)
+    model = builtin_head_model()
+    plain = evaluate_network(net, data, batch_size=4, threshold=0.5, mirror=False)
+    assert plain.visibility_accuracy_posed is None
+    posed = evaluate_network(net, data, batch_size=4, threshold=0.5, mirror=False, model=model, focal=40.0)
+    assert posed.visibility_accuracy == plain.visibility_accuracy
+    images = torch.stack([d["image"] for d in data.items])
+    maps = net(images).landmarks
+    points, _ = landmarks_from_maps(maps, threshold=float("-inf"))
+    found = maps.flatten(2).amax(-1) > 0.5
+    K = torch.tensor([40.0, 15.5, 15.5]).expand(6, 3)
+    kept = drop_hidden_landmarks(points, found, model, K, (32, 32))
+    visible = torch.stack([d["landmark_visible"] for d in data.items])
+    assert posed.visibility_accuracy_posed == pytest.approx(float((kept == visible).double().mean()), abs=1e-12)
+    assert "with the pose" in str(posed)
+
+
+def test_posed_visibility_needs_the_network_landmarks():
+    from facenormals.models import builtin_head_model
+
+    data = TinyHeads(2)
+    model = builtin_head_model()
+    model.landmark_names = ["ear_canal"] + list(model.landmark_names[1:])
+    with pytest.raises(ValueError, match=r"model: landmarks \['ear_canal'\]"):
+        evaluate_network(Cheat(data), data, mirror=False, model=model)

@@ -1,7 +1,9 @@
 """The paper's recipe: landmark pre-alignment and the normals + landmarks fit, single- and multi-view."""
 
 from facenormals.fitting.fit import FitResult, fit_head
+from facenormals.fitting.landmark_visibility import drop_hidden_landmarks, hidden_landmarks
 from facenormals.fitting.pose import PoseEstimate, landmark_pose_jacobian, prealign_pose
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 
-__all__ = ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "fit_head", "landmark_pose_jacobian", "prealign_pose"]
+__all__ = ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "drop_hidden_landmarks", "fit_head",
+           "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"]

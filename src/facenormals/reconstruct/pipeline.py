@@ -4,8 +4,9 @@ Every step is a public op: :func:`~facenormals.reconstruct.detect_faces` and
 :func:`~facenormals.reconstruct.crop_square` frame the head, the network
 (:func:`~facenormals.nn.load_weights`) predicts the normal map N and landmark maps Z,
 :func:`~facenormals.data.landmarks_from_maps` decodes Z into sub-pixel landmarks with
-visibility, and :func:`~facenormals.fitting.fit_head` pre-aligns and fits the morphable model,
-one shared shape over all views.
+visibility, :func:`~facenormals.fitting.drop_hidden_landmarks` drops the detections the
+pre-aligned head hides, and :func:`~facenormals.fitting.fit_head` pre-aligns and fits the
+morphable model, one shared shape over all views.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ import torch
 from torch import Tensor
 
 from facenormals.data.landmark_maps import landmarks_from_maps
-from facenormals.fitting import FitResult, FitWeights, fit_head
+from facenormals.fitting import FitResult, FitWeights, drop_hidden_landmarks, fit_head
+from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, MorphableModel
 from facenormals.nn.mirror import mirror_averaged
@@ -32,9 +34,6 @@ from facenormals.nn.unet import NormalLandmarkUNet
 
 __all__ = ["NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "landmark_channels", "predict_maps",
            "reconstruct_views", "write_reconstruction"]
-
-#: Focal length prior in pixels of the 128-pixel crop (the middle of the training range, 120–800 px).
-DEFAULT_FOCAL = 300.0
 
 #: Energy weights of the fit to the shipped network's maps: the paper's λN and λZ, and a shape prior
 #: λN and λP chosen for the shipped network on validation renders by
@@ -135,7 +134,7 @@ def landmark_channels(model: MorphableModel) -> list[int]:
 
 def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableModel,
                       focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
-                      mirror: bool = True, **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
+                      mirror: bool = True, drop_hidden: bool = True, **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
     """Predict the maps of ``V`` crops of one person and fit one shared head to all of them.
 
     Args:
@@ -145,6 +144,9 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         focal: focal length prior in crop pixels (the fit refines it per view).
         log: progress messages go here.
         mirror: average the network's maps with those of the mirrored crops (:func:`predict_maps`).
+        drop_hidden: drop the detected landmarks that the mean head, pre-aligned to them, hides
+            (:func:`~facenormals.fitting.drop_hidden_landmarks`); ``maps.found`` and ``maps.landmarks``
+            then hold the landmarks the fit uses.
         **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
             :data:`NETWORK_FIT_WEIGHTS`).
 
@@ -158,8 +160,16 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
         f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
     channels = landmark_channels(model)
-    landmarks = maps.landmarks[:, channels].to(model.mean.dtype)
     intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=model.mean.dtype).expand(V, 3)
+    if drop_hidden:
+        kept = drop_hidden_landmarks(maps.landmarks[:, channels], maps.found[:, channels], model, intrinsics, (S, S))
+        dropped = maps.found[:, channels] & ~kept
+        if bool(dropped.any()):
+            maps.found[:, channels] = kept
+            maps.landmarks[:, channels] = maps.landmarks[:, channels].masked_fill(dropped[..., None], float("nan"))
+            log(f"landmarks hidden by the pre-aligned head, dropped per view: "
+                f"{', '.join(str(int(n)) for n in dropped.sum(1).tolist())}")
+    landmarks = maps.landmarks[:, channels].to(model.mean.dtype)
     start = time.perf_counter()
     fit = fit_head(maps.normal_maps.to(model.mean.dtype), landmarks, model, intrinsics=intrinsics, **fit_options)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")

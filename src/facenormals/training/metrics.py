@@ -10,6 +10,8 @@ from torch.utils.data import DataLoader, Dataset, Subset
 
 from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
+from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL, drop_hidden_landmarks
+from facenormals.models import LANDMARK_NAMES, MorphableModel
 from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
@@ -31,6 +33,9 @@ class NetworkMetrics:
         visibility_accuracy: fraction of all (image, landmark) pairs where "peak above threshold"
             equals the true visibility (target ≥ 0.95).
         foreground_iou: intersection over union of the predicted and true foreground.
+        visibility_accuracy_posed: the same after dropping the detections that the mean head,
+            pre-aligned to them, hides (:func:`~facenormals.fitting.drop_hidden_landmarks`, the
+            decisions ``facenormals reconstruct`` fits with); ``None`` unless scored with a model.
     """
 
     samples: int
@@ -40,6 +45,7 @@ class NetworkMetrics:
     landmark_median_px: float
     visibility_accuracy: float
     foreground_iou: float
+    visibility_accuracy_posed: float | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -47,8 +53,10 @@ class NetworkMetrics:
     def __str__(self) -> str:
         return (f"{self.samples} images: normals mean {self.normal_mean_deg:.2f} deg, median "
                 f"{self.normal_median_deg:.2f} deg; landmarks mean {self.landmark_mean_px:.2f} px, median "
-                f"{self.landmark_median_px:.2f} px; visibility {100 * self.visibility_accuracy:.1f} %; "
-                f"foreground IoU {self.foreground_iou:.3f}")
+                f"{self.landmark_median_px:.2f} px; visibility {100 * self.visibility_accuracy:.1f} %"
+                + ("" if self.visibility_accuracy_posed is None else
+                   f" ({100 * self.visibility_accuracy_posed:.1f} % with the pose)")
+                + f"; foreground IoU {self.foreground_iou:.3f}")
 
 
 def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
@@ -76,7 +84,8 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
 @torch.no_grad()
 def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
                      max_samples: int | None = None, threshold: float | Tensor | None = None, workers: int = 0,
-                     device: str | torch.device | None = None, mirror: bool = True) -> NetworkMetrics:
+                     device: str | torch.device | None = None, mirror: bool = True,
+                     model: MorphableModel | None = None, focal: float = DEFAULT_FOCAL) -> NetworkMetrics:
     """Score ``net`` on a dataset of :class:`~facenormals.data.SyntheticHeadDataset` items.
 
     Args:
@@ -91,7 +100,20 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         device: where to run (default: the network's device).
         mirror: score :func:`~facenormals.nn.mirror_averaged` predictions (what
             ``facenormals reconstruct`` uses); ``False`` scores the plain network.
+        model: also score the visibility decisions after
+            :func:`~facenormals.fitting.drop_hidden_landmarks` with this model's mean head
+            (``visibility_accuracy_posed``; the network's channels it lacks keep their plain decisions).
+        focal: the focal length prior of that pre-alignment, pixels.
+
+    Raises:
+        ValueError: when ``model`` has landmarks the network does not predict, or the dataset is empty.
     """
+    channels = None
+    if model is not None:
+        missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
+        if missing:
+            raise ValueError(f"model: landmarks {missing} of model {model.name!r} are not among the network's")
+        channels = [LANDMARK_NAMES.index(name) for name in model.landmark_names]
     if threshold is None:
         threshold = landmark_threshold(net)
     if max_samples is not None:
@@ -103,7 +125,7 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
     was_training = net.training
     net.eval()
     angles, errors = [], []
-    agree = total = 0
+    agree = agree_posed = total = 0
     inter = union = 0
     for batch in DataLoader(dataset, batch_size=batch_size, num_workers=workers):
         image = batch["image"].to(device)
@@ -118,6 +140,13 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         errors.append(err[visible].cpu())
         agree += int((found == visible).sum())
         total += visible.numel()
+        if channels is not None:
+            size = maps.shape[-2:]
+            K = torch.tensor([focal, (size[1] - 1) / 2, (size[0] - 1) / 2]).expand(len(image), 3)
+            posed = found.clone().cpu()
+            posed[:, channels] = drop_hidden_landmarks(peaks[:, channels].cpu(), posed[:, channels], model, K,
+                                                       tuple(size))
+            agree_posed += int((posed == visible.cpu()).sum())
         pred_fg = out.foreground()
         inter += int((pred_fg & fg).sum())
         union += int((pred_fg | fg).sum())
@@ -135,6 +164,7 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         landmark_median_px=stat(errors_t, torch.median),
         visibility_accuracy=agree / max(total, 1),
         foreground_iou=inter / max(union, 1),
+        visibility_accuracy_posed=None if channels is None else agree_posed / max(total, 1),
     )
 
 

@@ -1,0 +1,146 @@
+r"""Landmark visibility from the pose: drop detections that the pre-aligned head itself hides.
+
+A network's landmark maps often show a peak for a landmark the head hides (the far eye corner or
+brow of a turned head). Pre-aligning the mean head to the detections and z-buffering it tells which
+landmarks the head can show at that pose; a detection it hides is dropped.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from facenormals.core.check import check_shape
+from facenormals.fitting.pose import prealign_pose
+from facenormals.geometry import project_points
+from facenormals.models import MorphableModel
+from facenormals.render.rasterize import rasterize_depth
+
+__all__ = ["DEFAULT_FOCAL", "HIDDEN_LANDMARK_TOLERANCE", "drop_hidden_landmarks", "hidden_landmarks"]
+
+#: Focal length prior in pixels of a 128-pixel crop (the middle of the training range, 120–800 px).
+DEFAULT_FOCAL = 300.0
+
+#: Depth slack in mm of the z-buffer test of :func:`drop_hidden_landmarks`: the mean head stands in for
+#: the true one, so a landmark counts as hidden only well behind the surface (chosen on 1,000
+#: training samples: 5 / 10 / 20 mm gave 85.3 / 85.6 / 85.4 % correct decisions on the held-out set).
+HIDDEN_LANDMARK_TOLERANCE = 10.0
+
+
+@torch.no_grad()
+def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tensor, intrinsics: Tensor,
+                     image_size: tuple[int, int], shape: Tensor | None = None,
+                     tolerance: float = HIDDEN_LANDMARK_TOLERANCE) -> Tensor:
+    r"""Which of ``model``'s landmarks the posed head hides: behind its own surface or outside the image.
+
+    A landmark is hidden when its vertex projects outside the image or lies more than ``tolerance``
+    mm behind the z-buffer (:func:`~facenormals.render.rasterize_depth`) at its nearest pixel.
+
+    Args:
+        model: the morphable model; its ``landmark_indices`` are tested.
+        rotation: :math:`X_c = R (p + t)` per view.
+        translation: ``t`` per view, mm.
+        intrinsics: ``(f, u0, v0)`` per view.
+        image_size: ``(H, W)``.
+        shape: shape coefficients ``(B, K)``; default: the mean head.
+        tolerance: depth slack in mm.
+
+    Returns:
+        ``(B, L)`` bool, True where hidden.
+
+    Shape:
+        - rotation: :math:`(B, 3, 3)`; translation, intrinsics: :math:`(B, 3)`
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> from facenormals.geometry import euler_to_rotation_matrix
+        >>> model = builtin_head_model()
+        >>> R = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.2]]))  # frontal; turned ~70 deg
+        >>> t = R.transpose(1, 2) @ torch.tensor([0.0, 0.0, 600.0])  # the head 600 mm in front of the camera
+        >>> hidden = hidden_landmarks(model, R, t, torch.tensor([[300.0, 63.5, 63.5]] * 2), (128, 128))
+        >>> [name for name, h in zip(model.landmark_names, hidden[0]) if h]  # frontal: behind the cheeks
+        ['right_jaw_angle', 'left_jaw_angle', 'right_ear_lobe', 'left_ear_lobe']
+        >>> [name for name, h in zip(model.landmark_names, hidden[1]) if h][:4]  # turned: the far side
+        ['right_eye_outer', 'right_eye_inner', 'right_brow_center', 'right_alar']
+    """
+    dims = check_shape(rotation, ["B", 3, 3], "rotation")
+    check_shape(translation, ["B", 3], "translation", dims)
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    if shape is not None:
+        check_shape(shape, ["B", model.num_shape], "shape", dims)
+    height, width = int(image_size[0]), int(image_size[1])
+    dtype = model.mean.dtype
+    coeffs = shape if shape is not None else torch.zeros(dims["B"], model.num_shape, dtype=dtype, device=model.mean.device)
+    vertices = model(coeffs.to(dtype))
+    pixels, depth = project_points(vertices, rotation.to(dtype), translation.to(dtype), intrinsics.to(dtype))
+    zbuffer = rasterize_depth(pixels, depth, model.faces, (height, width))
+    index = model.landmark_indices
+    uv, z = pixels[:, index].round(), depth[:, index]
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= height - 1) & (z > 0)
+    flat = (uv[..., 1].clamp(0, height - 1) * width + uv[..., 0].clamp(0, width - 1)).long()
+    surface = torch.gather(zbuffer.flatten(1), 1, flat)
+    return ~inside | (z > surface + tolerance)
+
+
+@torch.no_grad()
+def drop_hidden_landmarks(landmarks: Tensor, found: Tensor, model: MorphableModel, intrinsics: Tensor,
+                          image_size: tuple[int, int], tolerance: float = HIDDEN_LANDMARK_TOLERANCE,
+                          robust_scale: float = 3.0, min_landmarks: int = 4) -> Tensor:
+    r"""Drop the detections that the mean head, pre-aligned to them, hides.
+
+    The mean head is pre-aligned to the detected landmarks (:func:`prealign_pose`, Cauchy-reweighted
+    with ``robust_scale`` pixels so that the spurious detections do not tilt it) and z-buffered
+    (:func:`hidden_landmarks`); detections it hides are dropped. A view keeps all its detections if
+    fewer than ``min_landmarks`` would remain, or if it has too few to pre-align at all.
+
+    On the shipped network's 2,000 held-out images (mirror-averaged) this lifts the correct
+    visibility decisions from 82.7 % to 85.6 %, mostly by dropping false detections of eye corners,
+    brows and lips hidden by the turned head (docs/model_card.md).
+
+    Args:
+        landmarks: detected points ``(B, L, 2)`` in pixels, in the order of ``model.landmark_names``.
+        found: ``(B, L)`` detection mask.
+        model: the morphable model whose mean head is posed.
+        intrinsics: ``(f, u0, v0)`` prior per view.
+        image_size: ``(H, W)`` of the maps the landmarks come from.
+        tolerance: depth slack of the z-buffer test in mm.
+        robust_scale: Cauchy scale of the pre-alignment in pixels.
+        min_landmarks: fewest detections a view must keep.
+
+    Returns:
+        The new ``(B, L)`` detection mask.
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> from facenormals.geometry import euler_to_rotation_matrix
+        >>> model = builtin_head_model()
+        >>> R = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 1.2]]))  # turned by ~70 degrees
+        >>> t, K = R.transpose(1, 2) @ torch.tensor([0.0, 0.0, 600.0]), torch.tensor([[300.0, 63.5, 63.5]])
+        >>> points, _ = project_points(model.mean[model.landmark_indices][None], R, t, K)
+        >>> found = torch.ones(1, 24, dtype=torch.bool)  # a detector that reports every landmark
+        >>> kept = drop_hidden_landmarks(points, found, model, K, (128, 128))
+        >>> bool(kept.all()), bool(kept.sum() >= 4)
+        (False, True)
+    """
+    dims = check_shape(landmarks, ["B", "L", 2], "landmarks")
+    check_shape(found, ["B", "L"], "found", dims)
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    if dims["L"] != model.landmark_indices.shape[0]:
+        raise ValueError(f"landmarks: expected L = {model.landmark_indices.shape[0]} landmarks of model "
+                         f"{model.name!r}, got shape {tuple(landmarks.shape)}")
+    if found.dtype != torch.bool:
+        raise ValueError(f"found: expected a bool tensor, got dtype {found.dtype}")
+    found = found & torch.isfinite(landmarks).all(-1)
+    usable = found.sum(1) >= max(int(min_landmarks), 4)
+    if not bool(usable.any()):
+        return found
+    dtype = model.mean.dtype
+    pose = prealign_pose(landmarks[usable].to(dtype), model.mean[model.landmark_indices], intrinsics[usable].to(dtype),
+                         found[usable], robust_scale=robust_scale)
+    hidden = hidden_landmarks(model, pose.rotation, pose.translation, intrinsics[usable], image_size,
+                              tolerance=tolerance)
+    kept = found[usable] & ~hidden
+    enough = kept.sum(1) >= int(min_landmarks)
+    out = found.clone()
+    out[usable] = torch.where(enough[:, None], kept, found[usable])
+    return out
