@@ -58,10 +58,10 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
         >>> R = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.2]]))  # frontal; turned ~70 deg
         >>> t = R.transpose(1, 2) @ torch.tensor([0.0, 0.0, 600.0])  # the head 600 mm in front of the camera
         >>> hidden = hidden_landmarks(model, R, t, torch.tensor([[300.0, 63.5, 63.5]] * 2), (128, 128))
-        >>> [name for name, h in zip(model.landmark_names, hidden[0]) if h]  # frontal: behind the cheeks
-        ['right_jaw_angle', 'left_jaw_angle', 'right_ear_lobe', 'left_ear_lobe']
-        >>> [name for name, h in zip(model.landmark_names, hidden[1]) if h][:4]  # turned: the far side
-        ['right_eye_outer', 'right_eye_inner', 'right_brow_center', 'right_alar']
+        >>> tuple(name for name, h in zip(model.landmark_names, hidden[0]) if h)  # frontal: behind the cheeks
+        ('right_jaw_angle', 'left_jaw_angle', 'right_ear_lobe', 'left_ear_lobe')
+        >>> tuple(name for name, h in zip(model.landmark_names, hidden[1]) if h)[:4]  # turned: the far side
+        ('right_eye_outer', 'right_eye_inner', 'right_brow_center', 'right_alar')
     """
     dims = check_shape(rotation, ["B", 3, 3], "rotation")
     check_shape(translation, ["B", 3], "translation", dims)
@@ -116,7 +116,7 @@ def drop_hidden_landmarks(landmarks: Tensor, found: Tensor, model: MorphableMode
         >>> model = builtin_head_model()
         >>> R = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, 1.2]]))  # turned by ~70 degrees
         >>> t, K = R.transpose(1, 2) @ torch.tensor([0.0, 0.0, 600.0]), torch.tensor([[300.0, 63.5, 63.5]])
-        >>> points, _ = project_points(model.mean[model.landmark_indices][None], R, t, K)
+        >>> points, _ = project_points(model.mean[None, model.landmark_indices], R, t, K)
         >>> found = torch.ones(1, 24, dtype=torch.bool)  # a detector that reports every landmark
         >>> kept = drop_hidden_landmarks(points, found, model, K, (128, 128))
         >>> bool(kept.all()), bool(kept.sum() >= 4)
