@@ -100,7 +100,11 @@ def test_bare_head_matches_the_software_rasteriser(generator):
     assert float(angle.mean()) < 0.05 and float(angle.quantile(0.99)) < 0.5
     assert (theirs[:, 2] < 0.5).float().mean() > 0.99  # visible surfaces face the camera (z < 0)
     depth = torch.from_numpy(batch.depth).double()[both]
-    assert torch.allclose(depth, fragments.depth[both], atol=0.05)
+    # GL interpolates the depth attribute in float32: on Mesa (llvmpipe) within 1.1e-5 of the depth
+    # (0.011 mm at 1.9 m), on NVIDIA's EGL ~0.04 mm and more at ~2 m, hence a relative bound. A
+    # half-pixel offset or flipped axis shifts depths by millimetres on the slanted parts of the head.
+    error = (depth - fragments.depth[both]).abs()
+    assert float((error / fragments.depth[both]).max()) < 1e-4 and float(error.mean()) < 0.01
 
 
 def test_landmark_peaks_lie_on_the_projected_vertices(generator, samples):
