@@ -4,8 +4,10 @@ For N held-out identities of the synthetic generator (dataset seed 1, the held-o
 training never sees; ICT heads with y ~ N(0, 1), neutral expression, full appearance: skin, hair,
 eyes, occluders, backgrounds), render
 
-- one view with |yaw| <= 30 deg, and
-- three views of the same person at yaw 0 and +-45 deg,
+- one view with |yaw| <= 30 deg,
+- three views of the same person at yaw 0 and +-45 deg, and
+- one side view with |yaw| in 50-75 deg (no target; it shows what the far side's hidden landmarks
+  do to the fit),
 
 run the network on each 128x128 image, decode its landmarks, fit (the shipped recipe,
 ``reconstruct_views``), and score the face region (95 mm around the nose tip) after similarity and
@@ -57,7 +59,8 @@ def main() -> None:
     net = load_weights(args.weights)
     generator = SyntheticHeadGenerator(model, SynthConfig(expression_probability=0.0))
     rng = np.random.default_rng(args.seed)
-    rows = {k: [] for k in ("mean head", "single view", "three views")}
+    side_rng = np.random.default_rng(args.seed + 1000)  # apart, so the other settings keep their yaws
+    rows = {k: [] for k in ("mean head", "single view", "three views", "side view")}
     start = time.perf_counter()
     failures = []
     for i in range(args.heads):
@@ -65,9 +68,11 @@ def main() -> None:
         yaw = math.radians(rng.uniform(-30, 30))
         single = generator.generate(args.seed, [index], angles=[(0.0, 0.0, yaw)])
         three = generator.generate(args.seed, [index] * 3, angles=[(0.0, 0.0, math.radians(a)) for a in (-45, 0, 45)])
+        side_yaw = math.radians(side_rng.choice([-1.0, 1.0]) * side_rng.uniform(50, 75))
+        side = generator.generate(args.seed, [index], angles=[(0.0, 0.0, side_yaw)])
         truth = model(torch.from_numpy(single.shape_coeffs))[0]
         rows["mean head"].append(score(model, model.mean, truth))
-        for name, batch in (("single view", single), ("three views", three)):
+        for name, batch in (("single view", single), ("three views", three), ("side view", side)):
             try:
                 _, fit = reconstruct_views(images(batch), net, model)
             except ValueError as error:  # e.g. too few landmarks detected in a view
@@ -75,8 +80,8 @@ def main() -> None:
                 continue
             rows[name].append(score(model, fit.vertices[0], truth))
         print(f"head {i + 1}/{args.heads}: single {rows['single view'][-1]['p2p sim']:.3f} mm, three "
-              f"{rows['three views'][-1]['p2p sim']:.3f} mm, mean head {rows['mean head'][-1]['p2p sim']:.3f} mm "
-              f"({time.perf_counter() - start:.0f} s)", flush=True)
+              f"{rows['three views'][-1]['p2p sim']:.3f} mm, side {rows['side view'][-1]['p2p sim']:.3f} mm, "
+              f"mean head {rows['mean head'][-1]['p2p sim']:.3f} mm ({time.perf_counter() - start:.0f} s)", flush=True)
 
     base = {k: statistics.mean(r[k] for r in rows["mean head"]) for _, _, k in KEYS}
     lines = [
