@@ -126,14 +126,41 @@ def test_landmark_peaks_lie_on_the_projected_vertices(generator, samples):
     assert float((pixel - projected).abs().amax(-1)[visible].max()) <= 0.5 + 1e-4
 
 
-def test_visible_landmarks_lie_on_the_head_surface(samples):
+def test_visible_landmarks_lie_on_the_head_surface_or_its_outline(samples):
+    """A visible landmark's nearest pixel shows the head, or nothing with the head next to it (a
+    landmark on the outline); one under hair, a cap, clothing or an occluder is hidden."""
     b = samples
     u = np.rint(b.landmarks[..., 0]).astype(int).clip(0, 127)
     v = np.rint(b.landmarks[..., 1]).astype(int).clip(0, 127)
     rows = np.arange(len(b))[:, None]
-    assert np.isin(b.segmentation[rows, v, u][b.landmark_visible], HEAD_LABELS).all()
+    label = b.segmentation[rows, v, u]
+    assert not b.landmark_visible[~np.isin(label, (*HEAD_LABELS, LABELS["background"]))].any()
+    head = np.pad(np.isin(b.segmentation, HEAD_LABELS), ((0, 0), (1, 1), (1, 1)))
+    near_head = np.zeros_like(b.landmark_visible)
+    for dv in (0, 1, 2):
+        for du in (0, 1, 2):
+            near_head |= head[rows, v + dv, u + du]
+    outline = b.landmark_visible & (label == LABELS["background"])
+    assert near_head[outline].all()
     inside = (b.landmarks >= 0).all(-1) & (b.landmarks <= 127).all(-1)
     assert not b.landmark_visible[~inside].any()
+
+
+def test_a_profile_shows_the_nose_tip_on_the_outline(generator):
+    """In profile the nose tip lies on the outline, where its nearest pixel may be background: it is
+    visible (nothing hides it) and its map has a peak."""
+    with configured(generator, SynthConfig.head_only(pitch=0.0, roll=0.0, expression_probability=0.0)) as gen:
+        batch = gen.generate(10, range(40))
+    names = gen.model.landmark_names
+    yaw = np.abs(np.degrees(batch.angles[:, 2]))
+    tip = names.index("nose_tip")
+    u, v = np.rint(batch.landmarks[:, tip]).astype(int).clip(0, 127).T
+    outline = (yaw > 60) & (batch.segmentation[np.arange(len(batch)), v, u] == LABELS["background"])
+    assert outline.sum() >= 1
+    assert batch.landmark_visible[outline, tip].all()
+    maps = landmark_maps(torch.from_numpy(batch.landmarks[outline]), torch.from_numpy(batch.landmark_visible[outline]),
+                         (128, 128))
+    assert bool((maps[:, tip].flatten(1).amax(-1) > 0.5).all())
 
 
 def test_profiles_hide_the_far_ear(generator):

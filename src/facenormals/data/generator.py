@@ -25,6 +25,7 @@ from facenormals.data.head import HeadAssets
 from facenormals.data.render import MeshPart, RenderedTiles, TileRenderer, TileScene
 from facenormals.data.scene import (
     HEAD_LABELS,
+    LABELS,
     clothing_part,
     eye_parts,
     hair_parts,
@@ -154,7 +155,7 @@ class SynthBatch:
         landmarks: ``(B, L, 2)`` float32 landmark pixels ``(u, v)``, :func:`~facenormals.geometry.project_points`
             of the ground truth.
         landmark_visible: ``(B, L)`` bool: inside the image, not hidden by the head (z-buffer) nor
-            by hair, headwear, clothing or occluders.
+            by hair, headwear, clothing or occluders (a landmark on the outline is visible).
         shape_coeffs: ``(B, K)`` float32 identity coefficients.
         expression_coeffs: ``(B, E)`` float32 expression weights (``E = 0`` without blendshapes).
         angles: ``(B, 3)`` float32 ``(roll, pitch, yaw)`` in radians.
@@ -465,7 +466,8 @@ class SyntheticHeadGenerator:
 
     def _visibility(self, pixels: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, zbuffer: np.ndarray,
                     labels: np.ndarray) -> np.ndarray:
-        """Landmarks inside the image whose nearest pixel shows the head surface at their depth.
+        """Landmarks inside the image that nothing hides: their nearest pixel shows the head surface
+        at their depth, or nothing at all (a landmark on the outline, e.g. the nose tip in profile).
 
         The depth slack is the larger of 3 mm and the lateral size of two pixels at the landmark's
         depth, which absorbs the surface slope between the landmark and the pixel centre.
@@ -479,9 +481,10 @@ class SyntheticHeadGenerator:
         vi = np.clip(v, 0, size - 1).astype(np.int64)
         b = np.arange(len(pixels))[:, None]
         surface = zbuffer[b, vi, ui]
-        on_head = np.isin(labels[b, vi, ui], HEAD_LABELS)
+        label = labels[b, vi, ui]
+        unhidden = np.isin(label, HEAD_LABELS) | (label == LABELS["background"])  # background: depth inf
         slack = np.maximum(3.0, 2.0 * depth / intrinsics[:, None, 0])
-        return inside & on_head & (depth <= surface + slack)
+        return inside & unhidden & (depth <= surface + slack)
 
     def _empty(self) -> SynthBatch:
         s, k, e = self.config.image_size, self.model.num_shape, self.model.num_expressions
