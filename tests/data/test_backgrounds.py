@@ -43,3 +43,13 @@ def test_real_photo_crops_come_from_scikit_image():
     assert len(library) >= 10
     assert all(source.startswith("skimage.data.") for source in library.sources)
     assert "skimage.data.astronaut" not in library.sources  # no faces in the backgrounds
+
+
+def test_the_photo_library_is_the_same_every_time():
+    """Every sample must follow from (seed, index) alone: a library image that changes between builds
+    (skimage's binary_blobs draws new blobs on each call unless seeded) changes the samples that
+    draw it from one process to the next."""
+    pytest.importorskip("skimage")
+    first, second = PhotoLibrary(), PhotoLibrary()
+    assert first.sources == second.sources
+    assert all(np.array_equal(a, b) for a, b in zip(first.images, second.images))

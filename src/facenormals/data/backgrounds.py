@@ -20,6 +20,9 @@ SKIMAGE_IMAGES = (
     "gravel", "hubble_deep_field", "immunohistochemistry", "retina", "colorwheel", "logo", "motorcycle_left",
     "clock", "cell", "binary_blobs",
 )  # fmt: skip
+#: Arguments that make a generated ``skimage.data`` image the same in every process (``binary_blobs``
+#: draws new blobs on each call otherwise, so samples drawing it differed between runs).
+_SKIMAGE_ARGUMENTS = {"binary_blobs": {"rng": 0}}
 
 _MAX_SIDE = 512
 
@@ -74,7 +77,7 @@ class PhotoLibrary:
                     if loader is None:
                         continue
                     try:
-                        image = _to_rgb_uint8(loader())
+                        image = _to_rgb_uint8(loader(**_SKIMAGE_ARGUMENTS.get(name, {})))
                     except Exception:  # images that need a download (pooch) or fail to load are skipped
                         continue
                     if image is not None:
