@@ -127,3 +127,16 @@ def test_drop_hidden_landmarks_checks_its_inputs(model):
         drop_hidden_landmarks(points[:, :5], found[:, :5], model, K.expand(2, 3), (128, 128))
     with pytest.raises(ValueError, match=r"intrinsics: expected shape \(B, 3\)"):
         drop_hidden_landmarks(points, found, model, K, (128, 128))
+
+
+def test_drop_hidden_landmarks_runs_where_the_model_is(device):
+    """Inputs on the CPU (as ``predict_maps`` returns them), the model on ``device``: the work follows
+    the model and the mask comes back next to ``found``, equal to the all-CPU result."""
+    cpu_model = builtin_head_model(dtype=torch.float32)
+    R, t = posed(60.0)
+    points, _ = project_points(cpu_model.mean[None, cpu_model.landmark_indices], R.float(), t.float(), K.float())
+    found = torch.ones(1, 24, dtype=torch.bool)
+    expected = drop_hidden_landmarks(points, found, cpu_model, K.float(), (128, 128))
+    got = drop_hidden_landmarks(points, found, builtin_head_model(dtype=torch.float32).to(device), K.float(), (128, 128))
+    assert got.device == found.device and torch.equal(got, expected)
+    assert hidden_landmarks(cpu_model.to(device), R, t, K, (128, 128)).device == device

@@ -47,7 +47,7 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
         tolerance: depth slack in mm.
 
     Returns:
-        ``(B, L)`` bool, True where hidden.
+        ``(B, L)`` bool, True where hidden, on the model's device.
 
     Shape:
         - rotation: :math:`(B, 3, 3)`; translation, intrinsics: :math:`(B, 3)`
@@ -70,10 +70,11 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
     if shape is not None:
         check_shape(shape, ["B", model.num_shape], "shape", dims)
     height, width = int(image_size[0]), int(image_size[1])
-    dtype = model.mean.dtype
-    coeffs = shape if shape is not None else torch.zeros(dims["B"], model.num_shape, dtype=dtype, device=model.mean.device)
-    vertices = model(coeffs.to(dtype))
-    pixels, depth = project_points(vertices, rotation.to(dtype), translation.to(dtype), intrinsics.to(dtype))
+    dtype, device = model.mean.dtype, model.mean.device
+    coeffs = shape if shape is not None else torch.zeros(dims["B"], model.num_shape, dtype=dtype, device=device)
+    vertices = model(coeffs.to(device=device, dtype=dtype))
+    rotation, translation, intrinsics = (x.to(device=device, dtype=dtype) for x in (rotation, translation, intrinsics))
+    pixels, depth = project_points(vertices, rotation, translation, intrinsics)
     zbuffer = rasterize_depth(pixels, depth, model.faces, (height, width))
     index = model.landmark_indices
     uv, z = pixels[:, index].round(), depth[:, index]
@@ -109,7 +110,7 @@ def drop_hidden_landmarks(landmarks: Tensor, found: Tensor, model: MorphableMode
         min_landmarks: fewest detections a view must keep.
 
     Returns:
-        The new ``(B, L)`` detection mask.
+        The new ``(B, L)`` detection mask, on ``found``'s device (the work runs on the model's).
 
     Example:
         >>> from facenormals.models import builtin_head_model
@@ -131,17 +132,19 @@ def drop_hidden_landmarks(landmarks: Tensor, found: Tensor, model: MorphableMode
                          f"{model.name!r}, got shape {tuple(landmarks.shape)}")
     if found.dtype != torch.bool:
         raise ValueError(f"found: expected a bool tensor, got dtype {found.dtype}")
-    found = found & torch.isfinite(landmarks).all(-1)
+    out_device = found.device
+    dtype, device = model.mean.dtype, model.mean.device  # the inputs follow the model (e.g. onto the CPU)
+    landmarks, intrinsics = landmarks.to(device=device, dtype=dtype), intrinsics.to(device=device, dtype=dtype)
+    found = found.to(device) & torch.isfinite(landmarks).all(-1)
     usable = found.sum(1) >= max(int(min_landmarks), 4)
     if not bool(usable.any()):
-        return found
-    dtype = model.mean.dtype
-    pose = prealign_pose(landmarks[usable].to(dtype), model.mean[model.landmark_indices], intrinsics[usable].to(dtype),
-                         found[usable], robust_scale=robust_scale)
+        return found.to(out_device)
+    pose = prealign_pose(landmarks[usable], model.mean[model.landmark_indices], intrinsics[usable], found[usable],
+                         robust_scale=robust_scale)
     hidden = hidden_landmarks(model, pose.rotation, pose.translation, intrinsics[usable], image_size,
                               tolerance=tolerance)
     kept = found[usable] & ~hidden
     enough = kept.sum(1) >= int(min_landmarks)
     out = found.clone()
     out[usable] = torch.where(enough[:, None], kept, found[usable])
-    return out
+    return out.to(out_device)
