@@ -6,7 +6,9 @@ validation heads of the held-out seed at indices 200,000+ (disjoint from the hea
 ``accuracy_network.py`` reports on, 100,000+, and from the 2,000 held-out metric images), runs the
 network once per view, and fits each candidate (λN, λP) pair (single view, |yaw| <= 30 deg, the recipe of
 ``facenormals reconstruct`` otherwise), scored after similarity alignment beside the mean head.
-The chosen values go into ``facenormals.reconstruct.NETWORK_FIT_WEIGHTS``. Each row also gives
+``--store`` writes the best row's λN and λP into the weight file's metadata (``fit_weights``), which
+``facenormals reconstruct`` uses for that network (:func:`facenormals.reconstruct.network_fit_weights`;
+``NETWORK_FIT_WEIGHTS`` is the fallback for weights without them). Each row also gives
 the mean per-head change of the p2p RMSE against the first row, with its standard error: the
 spread between heads is large, so a difference of one or two standard errors is not a finding.
 
@@ -27,8 +29,8 @@ from accuracy_network import images, score
 from facenormals.data import SynthConfig, SyntheticHeadGenerator
 from facenormals.fitting import drop_hidden_landmarks, fit_head
 from facenormals.models import load_model
-from facenormals.nn import load_weights
-from facenormals.reconstruct import NETWORK_FIT_WEIGHTS, predict_maps
+from facenormals.nn import load_weights, pretrained_weights_path, update_weight_metadata
+from facenormals.reconstruct import network_fit_weights, predict_maps
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.reconstruct.pipeline import landmark_channels
 
@@ -40,6 +42,8 @@ def main() -> None:
     parser.add_argument("--normals", default="1", help="comma-separated candidate λN")
     parser.add_argument("--weights", default=None, help="network weights (default: the shipped ones)")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--store", action="store_true",
+                        help="write the best (λN, λP) by mean p2p RMSE into the weight file's metadata")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -65,9 +69,9 @@ def main() -> None:
              f"mean head {b_p2p:.3f} / {b_corr:.3f} mm", "",
              "| λN | λP | p2p RMSE, similarity | correspondence RMSE, similarity | ratio to mean head "
              "| p2p change per head vs the first row (± s.e.) |", "|---|---|---|---|---|---|"]
-    first = None
+    first, best = None, None
     for normal, prior in ((float(n), float(p)) for n in args.normals.split(",") for p in args.priors.split(",")):
-        weights = dataclasses.replace(NETWORK_FIT_WEIGHTS, normals=normal, prior=prior)
+        weights = dataclasses.replace(network_fit_weights(net), normals=normal, prior=prior)
         rows = []
         for (n, lm), t in zip(views, truths):
             try:
@@ -83,7 +87,13 @@ def main() -> None:
         lines.append(f"| {normal:g} | {prior:g} | {p2p:.3f} | {corr:.3f} | {p2p / b_p2p:.3f} / {corr / b_corr:.3f} "
                      f"| {statistics.mean(change):+.3f} ± {error:.3f} |")
         print(lines[-1], flush=True)
+        if best is None or p2p < best[0]:
+            best = (p2p, normal, prior)
     print("\n".join(lines))
+    if args.store:
+        path = update_weight_metadata(args.weights or pretrained_weights_path(),
+                                      fit_weights={"normals": best[1], "prior": best[2]})
+        print(f"stored fit_weights λN = {best[1]:g}, λP = {best[2]:g} in {path}")
 
 
 if __name__ == "__main__":

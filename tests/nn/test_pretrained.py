@@ -49,3 +49,25 @@ def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
     torch.save({"format": "something else"}, path)
     with pytest.raises(ValueError, match="not a facenormals network weight file"):
         load_weights(path)
+
+
+def test_update_weight_metadata_keeps_the_weights(tmp_path):
+    import shutil
+
+    from facenormals.nn import update_weight_metadata
+
+    path = tmp_path / "mine.pt"
+    shutil.copy(pretrained_weights_path(), path)
+    before = load_weights(path)
+    update_weight_metadata(path, fit_weights={"normals": 0.25, "prior": 1.5}, note="tuned")
+    after = load_weights(path)
+    assert after.metadata["fit_weights"] == {"normals": 0.25, "prior": 1.5} and after.metadata["note"] == "tuned"
+    assert {k: v for k, v in after.metadata.items() if k not in ("fit_weights", "note")} == before.metadata
+    for a, b in zip(before.state_dict().values(), after.state_dict().values()):
+        assert torch.equal(a, b)
+    assert not (tmp_path / "mine.pt.partial").exists()
+    with pytest.raises(FileNotFoundError, match="missing.pt: no such weight file"):
+        update_weight_metadata(tmp_path / "missing.pt", note="x")
+    (tmp_path / "junk.pt").write_bytes(b"not a weight file")
+    with pytest.raises(ValueError, match="junk.pt: not a readable weight file"):
+        update_weight_metadata(tmp_path / "junk.pt", note="x")

@@ -213,3 +213,25 @@ def test_unreliable_view_warning_follows_the_median_landmark_error(oracle):
         net = OracleNet(views.normal_maps[0][1:2], points)
         reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, log=messages.append, mirror=False)
         assert any("looks unreliable" in m for m in messages) == warned, messages
+
+
+def test_the_fit_weights_travel_with_the_network(oracle, monkeypatch):
+    """``network_fit_weights``: NETWORK_FIT_WEIGHTS unless the weights carry their own λ; reconstruct_views
+    fits with them; a malformed entry is a ValueError naming it."""
+    import facenormals.reconstruct.pipeline as pipeline
+    from facenormals.reconstruct import NETWORK_FIT_WEIGHTS, network_fit_weights
+
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0][:1], views.landmarks[0][:1][:, order])
+    assert network_fit_weights(net) == NETWORK_FIT_WEIGHTS
+    net.metadata = {"fit_weights": {"normals": 0.5, "prior": 2}}
+    assert network_fit_weights(net) == FitWeights(normals=0.5, landmarks=NETWORK_FIT_WEIGHTS.landmarks, prior=2.0)
+    used = []
+    real = pipeline.fit_head
+    monkeypatch.setattr(pipeline, "fit_head", lambda *a, **k: used.append(k["weights"]) or real(*a, **k))
+    reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]), mirror=False)
+    assert used == [FitWeights(normals=0.5, landmarks=0.8, prior=2.0)]
+    for bad in ({"normals": -1.0}, {"lambda_n": 1.0}, [0.1, 1.0], {"prior": True}):
+        net.metadata = {"fit_weights": bad}
+        with pytest.raises(ValueError, match="weights metadata 'fit_weights'"):
+            network_fit_weights(net)

@@ -9,7 +9,7 @@ import torch
 
 from facenormals.nn.unet import NormalLandmarkUNet
 
-__all__ = ["load_weights", "pretrained_weights_path"]
+__all__ = ["load_weights", "pretrained_weights_path", "update_weight_metadata"]
 
 WEIGHTS_FORMAT = "facenormals-unet"
 WEIGHTS_VERSION = 1
@@ -32,6 +32,47 @@ def pretrained_weights_path() -> Path:
     return Path(str(resources.files("facenormals") / "weights" / _SHIPPED))
 
 
+def _read_payload(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such weight file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
+        raise ValueError(f"{path}: not a readable weight file ({error})") from None
+    if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
+        raise ValueError(f"{path}: not a facenormals network weight file")
+    if payload.get("version") != WEIGHTS_VERSION:
+        raise ValueError(f"{path}: weight format version {payload.get('version')}, expected {WEIGHTS_VERSION}")
+    return payload
+
+
+def update_weight_metadata(path: str | Path, **items: object) -> Path:
+    """Add or replace metadata entries of a weight file in place (e.g. the ``fit_weights`` that
+    ``benchmarks/tune_network_fit.py --store`` chose for the network); the weights are untouched.
+
+    The file is rewritten atomically (a temporary file renamed over it), so an interrupted call
+    leaves the old file.
+
+    Raises:
+        FileNotFoundError, ValueError: as :func:`load_weights`.
+
+    Example:
+        >>> import shutil, tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "mine.pt"
+        >>> _ = shutil.copy(pretrained_weights_path(), path)
+        >>> _ = update_weight_metadata(path, fit_weights={"normals": 0.25, "prior": 1.0})
+        >>> load_weights(path).metadata["fit_weights"]
+        {'normals': 0.25, 'prior': 1.0}
+    """
+    path = Path(path)
+    payload = _read_payload(path)
+    payload["metadata"] = {**payload.get("metadata", {}), **items}
+    partial = path.with_name(path.name + ".partial")
+    torch.save(payload, partial)
+    partial.replace(path)
+    return path
+
+
 def load_weights(path: str | Path | None = None, device: str | torch.device = "cpu") -> NormalLandmarkUNet:
     """Build the network stored in a weight file and load its weights (float32, ``eval()`` mode).
 
@@ -50,16 +91,7 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         (24, False)
     """
     path = pretrained_weights_path() if path is None else Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such weight file")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
-        raise ValueError(f"{path}: not a readable weight file ({error})") from None
-    if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
-        raise ValueError(f"{path}: not a facenormals network weight file")
-    if payload.get("version") != WEIGHTS_VERSION:
-        raise ValueError(f"{path}: weight format version {payload.get('version')}, expected {WEIGHTS_VERSION}")
+    payload = _read_payload(path)
     arch = payload["architecture"]
     net = NormalLandmarkUNet(num_landmarks=int(arch["num_landmarks"]), base_channels=int(arch["base_channels"]),
                              depth=int(arch["depth"]))

@@ -63,8 +63,8 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         device: where the network runs.
         boxes: optional face boxes ``(x, y, w, h)`` per photo (``None`` entries: detect).
         log: progress messages.
-        fit_weights: the fit's energy weights (default:
-            :data:`~facenormals.reconstruct.NETWORK_FIT_WEIGHTS`).
+        fit_weights: the fit's energy weights (default: those stored with the network's weights,
+            :func:`~facenormals.reconstruct.network_fit_weights`).
         mirror: average the network's maps with those of the mirrored crops.
         **fit_options: passed to :func:`~facenormals.fitting.fit_head`.
     """

@@ -11,6 +11,7 @@ morphable model, one shared shape over all views.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -32,8 +33,8 @@ from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 
-__all__ = ["NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "landmark_channels", "predict_maps",
-           "reconstruct_views", "write_reconstruction"]
+__all__ = ["NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "landmark_channels", "network_fit_weights",
+           "predict_maps", "reconstruct_views", "write_reconstruction"]
 
 #: Energy weights of the fit to the shipped network's maps: the paper's λN and λZ, and a shape prior
 #: λN and λP chosen for the shipped network on validation renders by
@@ -42,6 +43,37 @@ __all__ = ["NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", 
 #: well; a tenth of the normal term and λP = 1 scored best (6 % lower p2p RMSE than λN = 1, λP = 2
 #: on 32 validation heads). Exact maps want the paper's weights (``FitWeights()``).
 NETWORK_FIT_WEIGHTS = FitWeights(normals=0.1, landmarks=0.8, prior=1.0)
+
+
+def network_fit_weights(net: torch.nn.Module) -> FitWeights:
+    """The fit weights for ``net``'s maps: :data:`NETWORK_FIT_WEIGHTS` with the entries its weight
+    file stores in ``metadata["fit_weights"]`` (e.g. ``{"normals": 0.25, "prior": 1.0}``, chosen for
+    that network by ``benchmarks/tune_network_fit.py --store``), so that a network of one's own
+    brings its own λN and λP.
+
+    Raises:
+        ValueError: naming the metadata entry when it is not a mapping of :class:`FitWeights` fields
+            to non-negative numbers.
+
+    Example:
+        >>> net = NormalLandmarkUNet(base_channels=4, depth=2)
+        >>> network_fit_weights(net) == NETWORK_FIT_WEIGHTS
+        True
+        >>> net.metadata = {"fit_weights": {"normals": 1.0, "prior": 0.4}}
+        >>> w = network_fit_weights(net)
+        >>> w.normals, w.landmarks, w.prior
+        (1.0, 0.8, 0.4)
+    """
+    stored = getattr(net, "metadata", {}).get("fit_weights")
+    if stored is None:
+        return NETWORK_FIT_WEIGHTS
+    fields = {f.name for f in dataclasses.fields(FitWeights)}
+    if not isinstance(stored, dict) or not set(stored) <= fields or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+            for v in stored.values()):
+        raise ValueError(f"weights metadata 'fit_weights': expected a mapping of {sorted(fields)} to non-negative "
+                         f"numbers, got {stored!r}")
+    return dataclasses.replace(NETWORK_FIT_WEIGHTS, **{k: float(v) for k, v in stored.items()})
 
 
 @dataclass
@@ -148,13 +180,13 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
             (:func:`~facenormals.fitting.drop_hidden_landmarks`); ``maps.found`` and ``maps.landmarks``
             then hold the landmarks the fit uses.
         **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
-            :data:`NETWORK_FIT_WEIGHTS`).
+            :func:`network_fit_weights` of ``net``).
 
     Raises:
         ValueError: naming the view when it has fewer than 4 detected landmarks.
     """
     log = log or (lambda message: None)
-    fit_options.setdefault("weights", NETWORK_FIT_WEIGHTS)
+    fit_options.setdefault("weights", network_fit_weights(net))
     maps = predict_maps(net, crops, mirror=mirror)
     V, _, S, _ = crops.shape
     log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
