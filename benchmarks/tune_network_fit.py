@@ -60,8 +60,9 @@ def main() -> None:
         size = maps.normal_maps.shape[-1]
         intrinsics = torch.tensor([[DEFAULT_FOCAL, (size - 1) / 2, (size - 1) / 2]])
         landmarks = maps.landmarks[:, channels]
-        kept = drop_hidden_landmarks(landmarks, maps.found[:, channels], model, intrinsics, (size, size))
-        views.append((maps.normal_maps, landmarks.masked_fill(~kept[..., None], float("nan"))))
+        kept, pose = drop_hidden_landmarks(landmarks, maps.found[:, channels], model, intrinsics, (size, size))
+        start = None if pose is None else (pose.angles, pose.translation)
+        views.append((maps.normal_maps, landmarks.masked_fill(~kept[..., None], float("nan")), start))
         truths.append(model(torch.from_numpy(batch.shape_coeffs))[0])
     base = [score(model, model.mean, t) for t in truths]
     b_p2p, b_corr = (statistics.mean(r[k] for r in base) for k in ("p2p sim", "corr sim"))
@@ -73,9 +74,10 @@ def main() -> None:
     for normal, prior in ((float(n), float(p)) for n in args.normals.split(",") for p in args.priors.split(",")):
         weights = dataclasses.replace(network_fit_weights(net), normals=normal, prior=prior)
         rows = []
-        for (n, lm), t in zip(views, truths):
+        for (n, lm, start), t in zip(views, truths):
             try:
-                rows.append(score(model, fit_head(n, lm, model, intrinsics=intrinsics, weights=weights).vertices[0], t))
+                fit = fit_head(n, lm, model, intrinsics=intrinsics, weights=weights, initial_pose=start)
+                rows.append(score(model, fit.vertices[0], t))
             except ValueError as error:  # e.g. fewer than 4 landmarks detected: scored as the mean head
                 print(f"fit failed ({error}); scored as the mean head")
                 rows.append(score(model, model.mean, t))

@@ -96,9 +96,12 @@ def test_drop_hidden_landmarks_drops_exactly_what_the_true_pose_hides(model):
     Ks = K.expand(3, 3)
     points, _ = project_points(model.mean[model.landmark_indices].expand(3, -1, -1), R, t, Ks)
     found = torch.ones(3, 24, dtype=torch.bool)
-    kept = drop_hidden_landmarks(points, found, model, Ks, (128, 128))
+    kept, pose = drop_hidden_landmarks(points, found, model, Ks, (128, 128))
     assert torch.equal(kept, ~hidden_landmarks(model, R, t, Ks, (128, 128)))
     assert not bool(kept[0].all()) and not bool(kept[2].all())
+    # the pose the drop was judged at is returned, so the fit can start from it
+    torch.testing.assert_close(pose.rotation, R, atol=1e-6, rtol=0)
+    torch.testing.assert_close(pose.translation, t[:, 0] if t.dim() == 3 else t, atol=1e-3, rtol=0)
 
 
 def test_drop_hidden_landmarks_keeps_views_it_cannot_judge(model):
@@ -106,14 +109,18 @@ def test_drop_hidden_landmarks_keeps_views_it_cannot_judge(model):
     points, _ = project_points(model.mean[model.landmark_indices][None], R, t, K)
     few = torch.zeros(1, 24, dtype=torch.bool)
     few[0, :3] = True  # too few to pre-align: unchanged
-    assert torch.equal(drop_hidden_landmarks(points, few, model, K, (128, 128)), few)
+    kept, pose = drop_hidden_landmarks(points, few, model, K, (128, 128))
+    assert torch.equal(kept, few) and pose is None
+    two = torch.cat([points, points])
+    mixed = torch.cat([few, torch.ones_like(few)])  # one view judged, one not: no pose for the fit
+    assert drop_hidden_landmarks(two, mixed, model, K.expand(2, 3), (128, 128))[1] is None
     everything = torch.ones(1, 24, dtype=torch.bool)
     shown = int((~hidden_landmarks(model, R, t, K, (128, 128))).sum())
-    kept = drop_hidden_landmarks(points, everything, model, K, (128, 128), min_landmarks=shown + 1)
+    kept, _ = drop_hidden_landmarks(points, everything, model, K, (128, 128), min_landmarks=shown + 1)
     assert bool(kept.all())  # dropping would leave fewer than min_landmarks: unchanged
     nan_points = points.clone()
     nan_points[0, 5] = float("nan")  # a NaN point is never kept
-    assert not bool(drop_hidden_landmarks(nan_points, everything, model, K, (128, 128))[0, 5])
+    assert not bool(drop_hidden_landmarks(nan_points, everything, model, K, (128, 128))[0][0, 5])
 
 
 def test_drop_hidden_landmarks_checks_its_inputs(model):
@@ -136,7 +143,8 @@ def test_drop_hidden_landmarks_runs_where_the_model_is(device):
     R, t = posed(60.0)
     points, _ = project_points(cpu_model.mean[None, cpu_model.landmark_indices], R.float(), t.float(), K.float())
     found = torch.ones(1, 24, dtype=torch.bool)
-    expected = drop_hidden_landmarks(points, found, cpu_model, K.float(), (128, 128))
-    got = drop_hidden_landmarks(points, found, builtin_head_model(dtype=torch.float32).to(device), K.float(), (128, 128))
+    expected, _ = drop_hidden_landmarks(points, found, cpu_model, K.float(), (128, 128))
+    got, _ = drop_hidden_landmarks(points, found, builtin_head_model(dtype=torch.float32).to(device), K.float(),
+                                   (128, 128))
     assert got.device == found.device and torch.equal(got, expected)
     assert hidden_landmarks(cpu_model.to(device), R, t, K, (128, 128)).device == device

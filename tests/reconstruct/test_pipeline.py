@@ -235,3 +235,36 @@ def test_the_fit_weights_travel_with_the_network(oracle, monkeypatch):
         net.metadata = {"fit_weights": bad}
         with pytest.raises(ValueError, match="weights metadata 'fit_weights'"):
             network_fit_weights(net)
+
+
+def test_the_fit_starts_from_the_pose_the_drop_was_judged_at(oracle, monkeypatch):
+    import facenormals.reconstruct.pipeline as pipeline
+
+    model, _, order = oracle
+    y = model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(5))
+    views = render_oracle_views(model, y, [70.0])
+    R = euler_to_rotation_matrix(views.angles[0])
+    everything, _ = project_points(views.vertices[:, model.landmark_indices], R, views.translation[0], views.intrinsics[0])
+    net = OracleNet(views.normal_maps[0], everything[:, order])
+    starts = []
+    real = pipeline.fit_head
+    monkeypatch.setattr(pipeline, "fit_head", lambda *a, **k: starts.append(k.get("initial_pose")) or real(*a, **k))
+    _, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                               mirror=False)
+    angles, _ = starts[0]
+    assert abs(float(angles[0, 2] - views.angles[0, 0, 2])) < 0.1  # the drop's pre-alignment, near the true yaw
+    assert bool(torch.isfinite(fit.prealignment_rms_px).all())
+
+
+def test_the_example_photo_with_the_builtin_head_stays_frontal():
+    """Regression: the README's main job on a fresh machine (built-in head). Dropping the jaw angles
+    and ear lobes the frontal mean head hides, then pre-aligning again on the rest, once turned this
+    frontal photo into an 82-degree profile; the fit now starts from the drop's own pose."""
+    from pathlib import Path
+
+    from facenormals.reconstruct import reconstruct_photos
+
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    rec = reconstruct_photos([photo], None, model="builtin", log=lambda message: None)
+    assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 2]))) < 20.0
+    assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 1]))) < 25.0

@@ -103,7 +103,7 @@ def test_posed_visibility_scores_the_decisions_after_dropping_hidden_landmarks()
     points, _ = landmarks_from_maps(maps, threshold=float("-inf"))
     found = maps.flatten(2).amax(-1) > 0.5
     K = torch.tensor([40.0, 15.5, 15.5]).expand(6, 3)
-    kept = drop_hidden_landmarks(points, found, model, K, (32, 32))
+    kept, _ = drop_hidden_landmarks(points, found, model, K, (32, 32))
     visible = torch.stack([d["landmark_visible"] for d in data.items])
     assert posed.visibility_accuracy_posed == pytest.approx(float((kept == visible).double().mean()), abs=1e-12)
     assert "with the pose" in str(posed)

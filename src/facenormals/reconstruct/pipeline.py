@@ -177,8 +177,8 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         log: progress messages go here.
         mirror: average the network's maps with those of the mirrored crops (:func:`predict_maps`).
         drop_hidden: drop the detected landmarks that the mean head, pre-aligned to them, hides
-            (:func:`~facenormals.fitting.drop_hidden_landmarks`); ``maps.found`` and ``maps.landmarks``
-            then hold the landmarks the fit uses.
+            (:func:`~facenormals.fitting.drop_hidden_landmarks`), and fit from that pre-alignment;
+            ``maps.found`` and ``maps.landmarks`` then hold the landmarks the fit uses.
         **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
             :func:`network_fit_weights` of ``net``).
 
@@ -193,8 +193,12 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
     channels = landmark_channels(model)
     intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=model.mean.dtype).expand(V, 3)
-    if drop_hidden:
-        kept = drop_hidden_landmarks(maps.landmarks[:, channels], maps.found[:, channels], model, intrinsics, (S, S))
+    pose = None
+    if drop_hidden and "initial_pose" not in fit_options:
+        kept, pose = drop_hidden_landmarks(maps.landmarks[:, channels], maps.found[:, channels], model, intrinsics,
+                                           (S, S))
+        if pose is not None:  # the drop is judged at this pose: fit from it (see drop_hidden_landmarks)
+            fit_options["initial_pose"] = (pose.angles, pose.translation)
         dropped = maps.found[:, channels] & ~kept
         if bool(dropped.any()):
             maps.found[:, channels] = kept
@@ -204,6 +208,8 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     landmarks = maps.landmarks[:, channels].to(model.mean.dtype)
     start = time.perf_counter()
     fit = fit_head(maps.normal_maps.to(model.mean.dtype), landmarks, model, intrinsics=intrinsics, **fit_options)
+    if pose is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
+        fit.prealignment_rms_px = pose.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])

@@ -144,8 +144,8 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
             size = maps.shape[-2:]
             K = torch.tensor([focal, (size[1] - 1) / 2, (size[0] - 1) / 2]).expand(len(image), 3)
             posed = found.clone().cpu()
-            posed[:, channels] = drop_hidden_landmarks(peaks[:, channels].cpu(), posed[:, channels], model, K,
-                                                       tuple(size))
+            posed[:, channels], _ = drop_hidden_landmarks(peaks[:, channels].cpu(), posed[:, channels], model, K,
+                                                          tuple(size))
             agree_posed += int((posed == visible.cpu()).sum())
         pred_fg = out.foreground()
         inter += int((pred_fg & fg).sum())
