@@ -6,7 +6,7 @@ import torch
 from facenormals.geometry import euler_to_rotation_matrix, project_points, transform_points
 from facenormals.mesh import vertex_normals
 from facenormals.models import builtin_head_model
-from facenormals.render import rasterize_triangles, render_normal_map, visible_vertices
+from facenormals.render import rasterize_triangles, render_normal_map, unoccluded_points, visible_vertices
 from facenormals.sampling import sample_bicubic
 
 
@@ -64,3 +64,22 @@ def test_visibility_bad_input():
     with pytest.raises(ValueError, match=r"zbuffer: expected shape \(B, H, W\) with B=1"):
         visible_vertices(torch.zeros(1, 2, 2), torch.ones(1, 2), torch.zeros(1, 2, 3), torch.zeros(1, 2, 3),
                          torch.zeros(2, 4, 4))
+
+
+def test_unoccluded_points_against_a_loop():
+    """Inside the image, in front of the camera, and within the slack of the nearest pixel's depth."""
+    g = torch.Generator().manual_seed(3)
+    zbuffer = torch.rand(2, 5, 7, generator=g, dtype=torch.float64) * 10 + 5
+    zbuffer[0, 2, 3] = float("inf")  # background
+    pixels = torch.rand(2, 40, 2, generator=g, dtype=torch.float64) * torch.tensor([9.0, 7.0]) - 1.0
+    depth = torch.rand(2, 40, generator=g, dtype=torch.float64) * 20 - 1.0
+    got = unoccluded_points(pixels, depth, zbuffer, tolerance=2.0)
+    for b in range(2):
+        for i in range(40):
+            u, v = round(float(pixels[b, i, 0])), round(float(pixels[b, i, 1]))
+            inside = 0 <= u <= 6 and 0 <= v <= 4 and float(depth[b, i]) > 0
+            expected = inside and float(depth[b, i]) <= float(zbuffer[b, v, u]) + 2.0
+            assert bool(got[b, i]) == expected, (b, i)
+    assert 0 < int(got.sum()) < 80
+    with pytest.raises(ValueError, match=r"zbuffer: expected shape \(B, H, W\)"):
+        unoccluded_points(pixels, depth, zbuffer[0])

@@ -15,6 +15,7 @@ from facenormals.fitting.pose import PoseEstimate, prealign_pose
 from facenormals.geometry import project_points
 from facenormals.models import MorphableModel
 from facenormals.render.rasterize import rasterize_depth
+from facenormals.render.visibility import unoccluded_points
 
 __all__ = ["DEFAULT_FOCAL", "HIDDEN_LANDMARK_TOLERANCE", "drop_hidden_landmarks", "hidden_landmarks"]
 
@@ -35,7 +36,8 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
     r"""Which of ``model``'s landmarks the posed head hides: behind its own surface or outside the image.
 
     A landmark is hidden when its vertex projects outside the image or lies more than ``tolerance``
-    mm behind the z-buffer (:func:`~facenormals.render.rasterize_depth`) at its nearest pixel.
+    mm behind the z-buffer (:func:`~facenormals.render.rasterize_depth`) at its nearest pixel
+    (:func:`~facenormals.render.unoccluded_points`).
 
     Args:
         model: the morphable model; its ``landmark_indices`` are tested.
@@ -77,11 +79,7 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
     pixels, depth = project_points(vertices, rotation, translation, intrinsics)
     zbuffer = rasterize_depth(pixels, depth, model.faces, (height, width))
     index = model.landmark_indices
-    uv, z = pixels[:, index].round(), depth[:, index]
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= height - 1) & (z > 0)
-    flat = (uv[..., 1].clamp(0, height - 1) * width + uv[..., 0].clamp(0, width - 1)).long()
-    surface = torch.gather(zbuffer.flatten(1), 1, flat)
-    return ~inside | (z > surface + tolerance)
+    return ~unoccluded_points(pixels[:, index], depth[:, index], zbuffer, tolerance)
 
 
 @torch.no_grad()

@@ -4,7 +4,7 @@ from facenormals.render.normal_map import render_normal_map
 from facenormals.render.overlay import draw_alignment, normal_map_to_image
 from facenormals.render.rasterize import Fragments, interpolate_vertex_attributes, rasterize_depth, rasterize_triangles
 from facenormals.render.shading import render_shaded, shade_normal_map
-from facenormals.render.visibility import splat_zbuffer, visible_vertices
+from facenormals.render.visibility import splat_zbuffer, unoccluded_points, visible_vertices
 
 __all__ = [
     "Fragments",
@@ -17,5 +17,6 @@ __all__ = [
     "render_shaded",
     "shade_normal_map",
     "splat_zbuffer",
+    "unoccluded_points",
     "visible_vertices",
 ]

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from facenormals.core.check import check_floating, check_shape
 
-__all__ = ["splat_zbuffer", "visible_vertices"]
+__all__ = ["splat_zbuffer", "unoccluded_points", "visible_vertices"]
 
 
 def visible_vertices(
@@ -50,23 +50,50 @@ def visible_vertices(
         tensor([[True]])
     """
     dims = check_shape(pixels, ["B", "N", 2], "pixels")
-    check_shape(depth, ["B", "N"], "depth", dims)
     check_shape(camera_normals, ["B", "N", 3], "camera_normals", dims)
     check_shape(camera_points, ["B", "N", 3], "camera_points", dims)
+    with torch.no_grad():
+        facing = (camera_normals * camera_points).sum(-1) / camera_points.norm(dim=-1).clamp_min(1e-12)
+        front = facing < -min_facing
+    return front & unoccluded_points(pixels, depth, zbuffer, tolerance)
+
+
+@torch.no_grad()
+def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance: float = 3.0) -> Tensor:
+    r"""Which points project inside the image, in front of the camera, and at most ``tolerance`` (mm)
+    behind the z-buffer at their nearest pixel: the occlusion half of :func:`visible_vertices`,
+    without its front-facing test (e.g. for landmarks, whose surface may face away at the outline).
+
+    Args:
+        pixels: projected points ``(u, v)``.
+        depth: their camera-frame depths.
+        zbuffer: a depth map (``inf`` on background), e.g. :func:`~facenormals.render.rasterize_depth`.
+        tolerance: depth slack in mm.
+
+    Returns:
+        ``(B, N)`` bool.
+
+    Shape:
+        - pixels: :math:`(B, N, 2)`; depth: :math:`(B, N)`; zbuffer: :math:`(B, H, W)`
+
+    Example:
+        >>> zbuffer = torch.full((1, 3, 3), 5.0)
+        >>> unoccluded_points(torch.tensor([[[1.0, 1.0], [1.0, 1.0], [4.0, 1.0]]]), torch.tensor([[7.0, 9.0, 5.0]]),
+        ...                   zbuffer)
+        tensor([[ True, False, False]])
+    """
+    dims = check_shape(pixels, ["B", "N", 2], "pixels")
+    check_shape(depth, ["B", "N"], "depth", dims)
     zdims = check_shape(zbuffer, ["B", "H", "W"], "zbuffer", dims)
     for name, x in (("pixels", pixels), ("depth", depth), ("zbuffer", zbuffer)):
         check_floating(x, name)
     height, width = zdims["H"], zdims["W"]
-    with torch.no_grad():
-        facing = (camera_normals * camera_points).sum(-1) / camera_points.norm(dim=-1).clamp_min(1e-12)
-        front = facing < -min_facing
-        u = torch.round(pixels[..., 0])
-        v = torch.round(pixels[..., 1])
-        inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)
-        index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
-        surface = torch.gather(zbuffer.reshape(dims["B"], -1), 1, index)
-        unoccluded = depth <= surface + tolerance
-        return front & inside & unoccluded
+    u = torch.round(pixels[..., 0])
+    v = torch.round(pixels[..., 1])
+    inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)
+    index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
+    surface = torch.gather(zbuffer.reshape(dims["B"], -1), 1, index)
+    return inside & (depth <= surface + tolerance)
 
 
 @torch.no_grad()
