@@ -11,10 +11,11 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL, drop_hidden_landmarks
-from facenormals.models import LANDMARK_NAMES, MorphableModel
+from facenormals.models import MorphableModel
 from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
+from facenormals.reconstruct.pipeline import landmark_channels
 
 __all__ = ["NetworkMetrics", "calibrate_landmark_threshold", "evaluate_network", "landmark_threshold", "normal_angles"]
 
@@ -108,12 +109,7 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
     Raises:
         ValueError: when ``model`` has landmarks the network does not predict, or the dataset is empty.
     """
-    channels = None
-    if model is not None:
-        missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
-        if missing:
-            raise ValueError(f"model: landmarks {missing} of model {model.name!r} are not among the network's")
-        channels = [LANDMARK_NAMES.index(name) for name in model.landmark_names]
+    channels = None if model is None else landmark_channels(model)
     if threshold is None:
         threshold = landmark_threshold(net)
     if max_samples is not None:
