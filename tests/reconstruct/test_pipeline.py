@@ -60,15 +60,21 @@ def test_reconstruct_views_recovers_the_oracle_head(oracle):
     torch.testing.assert_close(fit.angles[0, :, 2], views.angles[0, :, 2], atol=0.03, rtol=0)
 
 
-def test_detections_the_turned_head_hides_are_dropped_before_the_fit(oracle):
-    """A network that reports every landmark, hidden or not, at its projection: the recipe drops those
-    the pre-aligned head hides and fits with the rest; ``drop_hidden=False`` keeps them."""
-    model, _, order = oracle
+def turned_head_reporting_everything(model, order):
+    """A head turned by 70 degrees and an oracle network that reports every landmark, hidden or not,
+    at its projection."""
     y = model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(5))
     views = render_oracle_views(model, y, [70.0])
     R = euler_to_rotation_matrix(views.angles[0])
     everything, _ = project_points(views.vertices[:, model.landmark_indices], R, views.translation[0], views.intrinsics[0])
-    net = OracleNet(views.normal_maps[0], everything[:, order])
+    return views, OracleNet(views.normal_maps[0], everything[:, order])
+
+
+def test_detections_the_turned_head_hides_are_dropped_before_the_fit(oracle):
+    """A network that reports every landmark, hidden or not, at its projection: the recipe drops those
+    the pre-aligned head hides and fits with the rest; ``drop_hidden=False`` keeps them."""
+    model, _, order = oracle
+    views, net = turned_head_reporting_everything(model, order)
     focal = float(views.intrinsics[0, 0, 0])
     messages = []
     maps, _ = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, mirror=False, log=messages.append)
@@ -241,11 +247,7 @@ def test_the_fit_starts_from_the_pose_the_drop_was_judged_at(oracle, monkeypatch
     import facenormals.reconstruct.pipeline as pipeline
 
     model, _, order = oracle
-    y = model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(5))
-    views = render_oracle_views(model, y, [70.0])
-    R = euler_to_rotation_matrix(views.angles[0])
-    everything, _ = project_points(views.vertices[:, model.landmark_indices], R, views.translation[0], views.intrinsics[0])
-    net = OracleNet(views.normal_maps[0], everything[:, order])
+    views, net = turned_head_reporting_everything(model, order)
     starts = []
     real = pipeline.fit_head
     monkeypatch.setattr(pipeline, "fit_head", lambda *a, **k: starts.append(k.get("initial_pose")) or real(*a, **k))
