@@ -27,12 +27,10 @@ import torch
 
 from accuracy_network import images, score
 from facenormals.data import SynthConfig, SyntheticHeadGenerator
-from facenormals.fitting import drop_hidden_landmarks, fit_head
+from facenormals.fitting import fit_head
 from facenormals.models import load_model
 from facenormals.nn import load_weights, pretrained_weights_path, update_weight_metadata
-from facenormals.reconstruct import network_fit_weights, predict_maps
-from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
-from facenormals.reconstruct.pipeline import landmark_channels
+from facenormals.reconstruct import fit_inputs, network_fit_weights, predict_maps
 
 
 def main() -> None:
@@ -51,18 +49,12 @@ def main() -> None:
     net = load_weights(args.weights)
     generator = SyntheticHeadGenerator(model, SynthConfig(expression_probability=0.0))
     rng = np.random.default_rng(2)
-    channels = landmark_channels(model)
     views, truths = [], []
     for i in range(args.heads):
         yaw = math.radians(rng.uniform(-30, 30))
         batch = generator.generate(1, [200_000 + i], angles=[(0.0, 0.0, yaw)])
-        maps = predict_maps(net, images(batch))
-        size = maps.normal_maps.shape[-1]
-        intrinsics = torch.tensor([[DEFAULT_FOCAL, (size - 1) / 2, (size - 1) / 2]])
-        landmarks = maps.landmarks[:, channels]
-        kept, pose = drop_hidden_landmarks(landmarks, maps.found[:, channels], model, intrinsics, (size, size))
-        start = None if pose is None else (pose.angles, pose.translation)
-        views.append((maps.normal_maps, landmarks.masked_fill(~kept[..., None], float("nan")), start))
+        inputs = fit_inputs(predict_maps(net, images(batch)), model)  # as facenormals reconstruct does
+        views.append(inputs)
         truths.append(model(torch.from_numpy(batch.shape_coeffs))[0])
     base = [score(model, model.mean, t) for t in truths]
     b_p2p, b_corr = (statistics.mean(r[k] for r in base) for k in ("p2p sim", "corr sim"))
@@ -74,9 +66,10 @@ def main() -> None:
     for normal, prior in ((float(n), float(p)) for n in args.normals.split(",") for p in args.priors.split(",")):
         weights = dataclasses.replace(network_fit_weights(net), normals=normal, prior=prior)
         rows = []
-        for (n, lm, start), t in zip(views, truths):
+        for inputs, t in zip(views, truths):
             try:
-                fit = fit_head(n, lm, model, intrinsics=intrinsics, weights=weights, initial_pose=start)
+                fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics,
+                               weights=weights, initial_pose=inputs.initial_pose)
                 rows.append(score(model, fit.vertices[0], t))
             except ValueError as error:  # e.g. fewer than 4 landmarks detected: scored as the mean head
                 print(f"fit failed ({error}); scored as the mean head")

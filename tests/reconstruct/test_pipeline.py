@@ -16,7 +16,15 @@ from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, builtin_head_model
 from facenormals.nn import NormalLandmarkUNet, UNetOutput
 from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
-from facenormals.reconstruct import PhotoView, Reconstruction, predict_maps, reconstruct_views, write_reconstruction
+from facenormals.reconstruct import (
+    NetworkMaps,
+    PhotoView,
+    Reconstruction,
+    fit_inputs,
+    predict_maps,
+    reconstruct_views,
+    write_reconstruction,
+)
 
 
 class OracleNet(nn.Module):
@@ -87,6 +95,49 @@ def test_detections_the_turned_head_hides_are_dropped_before_the_fit(oracle):
     assert any("hidden by the pre-aligned head" in m for m in messages)
     kept, _ = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, mirror=False, drop_hidden=False)
     assert bool(kept.found.all())
+
+
+def test_fit_inputs_compose_channel_matching_and_the_drop(oracle):
+    """``fit_inputs`` is the channel matching, the intrinsics prior and drop_hidden_landmarks, composed;
+    it leaves the maps alone."""
+    from facenormals.fitting import drop_hidden_landmarks
+
+    model, _, order = oracle
+    views, net = turned_head_reporting_everything(model, order)
+    maps = predict_maps(net, torch.zeros(1, 3, 128, 128), mirror=False)
+    before = maps.landmarks.clone()
+    inputs = fit_inputs(maps, model, focal=250.0)
+    torch.testing.assert_close(inputs.intrinsics, torch.tensor([[250.0, 63.5, 63.5]]))
+    # by hand: network channel order -> the model's landmark order, then the drop
+    points = maps.landmarks[:, [order.index(i) for i in range(len(order))]]
+    kept, pose = drop_hidden_landmarks(points, torch.isfinite(points).all(-1), model, inputs.intrinsics, (128, 128))
+    assert inputs.dropped.tolist() == (~kept).tolist() and int(inputs.dropped.sum()) >= 6
+    torch.testing.assert_close(inputs.landmarks[kept], points[kept])
+    assert bool(torch.isnan(inputs.landmarks[~kept]).all())
+    torch.testing.assert_close(inputs.initial_pose[0], pose.angles)
+    torch.testing.assert_close(maps.landmarks, before, equal_nan=True)
+    plain = fit_inputs(maps, model, drop_hidden=False)
+    assert plain.initial_pose is None and not bool(plain.dropped.any())
+    torch.testing.assert_close(plain.landmarks, points)
+
+
+def test_fit_inputs_checks_its_inputs(oracle):
+    model = oracle[0]
+    maps = NetworkMaps(torch.zeros(2, 3, 128, 128), torch.zeros(2, 24, 128, 128), torch.zeros(1, 24, 2),
+                       torch.zeros(1, 24, dtype=torch.bool))
+    with pytest.raises(ValueError, match="maps.landmarks"):
+        fit_inputs(maps, model)
+    maps = NetworkMaps(torch.zeros(1, 3, 128, 128), torch.zeros(1, 24, 128, 128), torch.zeros(1, 24, 2),
+                       torch.zeros(1, 23, dtype=torch.bool))
+    with pytest.raises(ValueError, match="maps.found"):
+        fit_inputs(maps, model)
+    maps.found = torch.zeros(1, 24, dtype=torch.bool)
+    with pytest.raises(ValueError, match="focal"):
+        fit_inputs(maps, model, focal=0.0)
+    maps = NetworkMaps(torch.zeros(1, 3, 128, 128), torch.zeros(1, 4, 128, 128), torch.zeros(1, 4, 2),
+                       torch.zeros(1, 4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="landmark channels"):
+        fit_inputs(maps, model)
 
 
 def test_landmark_channels_are_matched_by_name(oracle):

@@ -9,9 +9,11 @@ from facenormals.reconstruct.images import ImageReadError, read_image
 from facenormals.reconstruct.photos import prepare_view, reconstruct_photos
 from facenormals.reconstruct.pipeline import (
     NETWORK_FIT_WEIGHTS,
+    FitInputs,
     NetworkMaps,
     PhotoView,
     Reconstruction,
+    fit_inputs,
     landmark_channels,
     network_fit_weights,
     predict_maps,
@@ -21,6 +23,7 @@ from facenormals.reconstruct.pipeline import (
 
 __all__ = [
     "FaceBox",
+    "FitInputs",
     "ImageReadError",
     "NETWORK_FIT_WEIGHTS",
     "NetworkMaps",
@@ -29,6 +32,7 @@ __all__ = [
     "Reconstruction",
     "crop_square",
     "detect_faces",
+    "fit_inputs",
     "head_crop_box",
     "landmark_channels",
     "network_fit_weights",

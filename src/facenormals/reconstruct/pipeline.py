@@ -24,8 +24,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
-from facenormals.fitting import FitResult, FitWeights, drop_hidden_landmarks, fit_head
+from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks, fit_head
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, MorphableModel
@@ -33,7 +34,7 @@ from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 
-__all__ = ["NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "landmark_channels", "network_fit_weights",
+__all__ = ["FitInputs", "NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "fit_inputs", "landmark_channels", "network_fit_weights",
            "predict_maps", "reconstruct_views", "write_reconstruction"]
 
 #: Energy weights of the fit to the shipped network's maps: the paper's λN and λZ, and a shape prior
@@ -164,6 +165,78 @@ def landmark_channels(model: MorphableModel) -> list[int]:
     return [LANDMARK_NAMES.index(name) for name in model.landmark_names]
 
 
+@dataclass
+class FitInputs:
+    """What :func:`~facenormals.fitting.fit_head` takes from the network's maps of ``V`` views.
+
+    Attributes:
+        normal_maps: ``(V, 3, S, S)`` in the model's dtype.
+        landmarks: ``(V, L, 2)`` in the order of ``model.landmark_names``, NaN where not detected or
+            dropped.
+        intrinsics: ``(V, 3)`` prior ``(f, u0, v0)``: the focal length prior and the crop centre.
+        dropped: ``(V, L)`` detections dropped as hidden by the pre-aligned mean head.
+        prealignment: the pose the drop was judged at; ``None`` without the drop or when some view
+            had too few detections to pre-align.
+    """
+
+    normal_maps: Tensor
+    landmarks: Tensor
+    intrinsics: Tensor
+    dropped: Tensor
+    prealignment: PoseEstimate | None = None
+
+    @property
+    def initial_pose(self) -> tuple[Tensor, Tensor] | None:
+        """``(angles, translation)`` for ``fit_head(..., initial_pose=)``: fit from the pose the drop
+        was judged at (see :func:`~facenormals.fitting.drop_hidden_landmarks`)."""
+        return None if self.prealignment is None else (self.prealignment.angles, self.prealignment.translation)
+
+
+def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_FOCAL,
+               drop_hidden: bool = True) -> FitInputs:
+    """Turn the network's maps into the inputs of the fit, as :func:`reconstruct_views` does.
+
+    The network's landmark channels are matched to ``model``'s landmarks by name
+    (:func:`landmark_channels`), the intrinsics prior is ``focal`` with the principal point at the crop
+    centre, and with ``drop_hidden`` the detections that the mean head, pre-aligned to them, hides are
+    dropped (:func:`~facenormals.fitting.drop_hidden_landmarks`). ``maps`` is not changed.
+
+    Raises:
+        ValueError: naming ``maps`` when its fields disagree in shape, or ``focal`` when it is not
+            positive.
+
+    Example:
+        >>> from facenormals.models import builtin_head_model
+        >>> model = builtin_head_model()
+        >>> maps = NetworkMaps(torch.zeros(2, 3, 128, 128), torch.zeros(2, 24, 128, 128),
+        ...                    torch.full((2, 24, 2), float("nan")), torch.zeros(2, 24, dtype=torch.bool))
+        >>> inputs = fit_inputs(maps, model)
+        >>> tuple(inputs.landmarks.shape), inputs.intrinsics[0].tolist(), inputs.prealignment is None
+        ((2, 24, 2), [300.0, 63.5, 63.5], True)
+    """
+    check_shape(maps.normal_maps, ["V", 3, "S", "S"], "maps.normal_maps")
+    dims = check_shape(maps.landmarks, ["V", "C", 2], "maps.landmarks")
+    check_shape(maps.found, ["V", "C"], "maps.found", dims)
+    V, S = maps.normal_maps.shape[0], maps.normal_maps.shape[-1]
+    if dims["V"] != V:
+        raise ValueError(f"maps.landmarks: expected {V} views as in maps.normal_maps, got {dims['V']}")
+    if not (math.isfinite(focal) and focal > 0):
+        raise ValueError(f"focal: expected a positive focal length in pixels, got {focal}")
+    channels = landmark_channels(model)
+    if max(channels) >= dims["C"]:
+        raise ValueError(f"maps.landmarks: expected the network's {len(LANDMARK_NAMES)} landmark channels, "
+                         f"got {dims['C']}")
+    dtype = model.mean.dtype
+    intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=dtype).expand(V, 3)
+    landmarks, found = maps.landmarks[:, channels].to(dtype), maps.found[:, channels]
+    dropped, pose = torch.zeros_like(found), None
+    if drop_hidden:
+        kept, pose = drop_hidden_landmarks(landmarks, found, model, intrinsics, (S, S))
+        dropped = found & ~kept
+        landmarks = landmarks.masked_fill(dropped[..., None], float("nan"))
+    return FitInputs(maps.normal_maps.to(dtype), landmarks, intrinsics, dropped, pose)
+
+
 def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableModel,
                       focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
                       mirror: bool = True, drop_hidden: bool = True, **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
@@ -191,25 +264,19 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     V, _, S, _ = crops.shape
     log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
         f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
-    channels = landmark_channels(model)
-    intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=model.mean.dtype).expand(V, 3)
-    pose = None
-    if drop_hidden and "initial_pose" not in fit_options:
-        kept, pose = drop_hidden_landmarks(maps.landmarks[:, channels], maps.found[:, channels], model, intrinsics,
-                                           (S, S))
-        if pose is not None:  # the drop is judged at this pose: fit from it (see drop_hidden_landmarks)
-            fit_options["initial_pose"] = (pose.angles, pose.translation)
-        dropped = maps.found[:, channels] & ~kept
-        if bool(dropped.any()):
-            maps.found[:, channels] = kept
-            maps.landmarks[:, channels] = maps.landmarks[:, channels].masked_fill(dropped[..., None], float("nan"))
-            log(f"landmarks hidden by the pre-aligned head, dropped per view: "
-                f"{', '.join(str(int(n)) for n in dropped.sum(1).tolist())}")
-    landmarks = maps.landmarks[:, channels].to(model.mean.dtype)
+    inputs = fit_inputs(maps, model, focal, drop_hidden and "initial_pose" not in fit_options)
+    if inputs.prealignment is not None:
+        fit_options["initial_pose"] = inputs.initial_pose
+    if bool(inputs.dropped.any()):
+        channels = landmark_channels(model)
+        maps.found[:, channels] &= ~inputs.dropped
+        maps.landmarks[:, channels] = maps.landmarks[:, channels].masked_fill(inputs.dropped[..., None], float("nan"))
+        log(f"landmarks hidden by the pre-aligned head, dropped per view: "
+            f"{', '.join(str(int(n)) for n in inputs.dropped.sum(1).tolist())}")
     start = time.perf_counter()
-    fit = fit_head(maps.normal_maps.to(model.mean.dtype), landmarks, model, intrinsics=intrinsics, **fit_options)
-    if pose is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
-        fit.prealignment_rms_px = pose.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
+    fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics, **fit_options)
+    if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
+        fit.prealignment_rms_px = inputs.prealignment.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])
