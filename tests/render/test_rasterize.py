@@ -55,11 +55,33 @@ def test_perspective_correct_barycentrics_reproject_to_pixel_centres():
     assert frags.mask.sum() > 500
 
 
-def test_backface_culling():
-    uv = torch.tensor([[[0.0, 0.0], [0.0, 10.0], [10.0, 0.0]]])  # clockwise on screen (y down)
-    faces = torch.tensor([[0, 1, 2]])
-    assert rasterize_triangles(uv, torch.ones(1, 3), faces, (12, 12)).mask.any()
-    assert not rasterize_triangles(uv, torch.ones(1, 3), faces, (12, 12), cull_backfaces=True).mask.any()
+def test_backface_culling_keeps_the_faces_towards_the_camera():
+    """A triangle wound counter-clockwise seen from the camera (its outward normal, by the right-hand
+    rule, points at the camera) is kept; the same triangle wound the other way is culled."""
+    points = torch.tensor([[[-1.0, -1.0, 5.0], [-1.0, 1.0, 5.0], [1.0, -1.0, 5.0]]], dtype=torch.float64)
+    outward = torch.linalg.cross(points[0, 1] - points[0, 0], points[0, 2] - points[0, 0])
+    assert float(outward[2]) < 0  # towards the camera at the origin
+    R, t = torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3, dtype=torch.float64)
+    uv, z = project_points(points, R, t, torch.tensor([[25.0, 5.5, 5.5]], dtype=torch.float64))
+    facing, away = torch.tensor([[0, 1, 2]]), torch.tensor([[0, 2, 1]])
+    plain = rasterize_triangles(uv, z, facing, (12, 12)).mask
+    assert plain.sum() > 10
+    assert torch.equal(rasterize_triangles(uv, z, facing, (12, 12), cull_backfaces=True).mask, plain)
+    assert not rasterize_triangles(uv, z, away, (12, 12), cull_backfaces=True).mask.any()
+
+
+def test_backface_culling_leaves_the_visible_surface_of_a_closed_head():
+    """The z-buffer already shows front faces only, so culling must not change the depth map."""
+    from facenormals.models import builtin_head_model
+
+    model = builtin_head_model()
+    R, t = torch.eye(3, dtype=torch.float64)[None], torch.tensor([[0.0, 0.0, 600.0]], dtype=torch.float64)
+    uv, z = project_points(model.mean[None], R, t, torch.tensor([[300.0, 31.5, 31.5]], dtype=torch.float64))
+    plain = rasterize_depth(uv, z, model.faces, (64, 64))
+    culled = rasterize_depth(uv, z, model.faces, (64, 64), cull_backfaces=True)
+    fg = torch.isfinite(plain)
+    assert fg.sum() > 500 and torch.equal(torch.isfinite(culled), fg)
+    assert_close(culled[fg], plain[fg])
 
 
 def test_behind_camera_skipped_and_batch():

@@ -74,8 +74,8 @@ def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, he
     p0, p1, p2 = tri_uv.unbind(2)
     area = (p1[..., 0] - p0[..., 0]) * (p2[..., 1] - p0[..., 1]) - (p1[..., 1] - p0[..., 1]) * (p2[..., 0] - p0[..., 0])
     valid = (tri_z > near).all(-1) & torch.isfinite(tri_uv).all(-1).all(-1) & (area.abs() > 1e-12)
-    if cull_backfaces:
-        valid &= area > 0
+    if cull_backfaces:  # facing the camera: counter-clockwise on screen, i.e. area < 0 with v pointing down
+        valid &= area < 0
     lo = torch.ceil(tri_uv.amin(2) - 1e-9).clamp(min=0)
     hi = torch.floor(tri_uv.amax(2) + 1e-9)
     hi = torch.minimum(hi, torch.tensor([width - 1, height - 1], dtype=work, device=device))
@@ -127,8 +127,9 @@ def rasterize_triangles(
         depth: camera-frame depth of each vertex; triangles with a vertex at ``z <= near`` are skipped.
         faces: triangles as vertex indices.
         image_size: ``(H, W)``.
-        cull_backfaces: skip triangles that are wound clockwise on screen, i.e. face away from the
-            camera for counter-clockwise outward winding (y points down in the image).
+        cull_backfaces: skip triangles that face away from the camera: with faces wound
+            counter-clockwise seen from outside (docs/conventions.md), those that appear clockwise
+            in the image as displayed (u right, v down).
         near: near-plane depth.
 
     Returns:
