@@ -51,3 +51,21 @@ def test_float32_and_bad_input():
         vertex_normals_jvp(v[None], faces, torch.ones(2, 5, 3))
     with pytest.raises(ValueError, match="vertices"):
         vertex_normals_jvp(v, faces, torch.ones(2, *v.shape))
+
+
+def test_faces_and_vertex_count_are_checked():
+    """Faces out of range or of a float dtype, and vertices of another mesh, are named errors rather
+    than an IndexError from the gather or a silently truncated face list."""
+    v, faces = open_mesh(torch.float64)
+    tangents = torch.ones(2, *v.shape, dtype=torch.float64)
+    bad = faces.clone()
+    bad[0, 0] = v.shape[0]
+    with pytest.raises(ValueError, match=rf"faces: expected vertex indices in \[0, {v.shape[0]}\)"):
+        vertex_normals_jvp(v[None], bad, tangents)
+    with pytest.raises(ValueError, match=rf"faces: expected vertex indices in \[0, {v.shape[0]}\)"):
+        VertexNormalsJacobian(bad, tangents)
+    with pytest.raises(ValueError, match="faces: expected an integer tensor"):
+        VertexNormalsJacobian(faces.double() + 0.9, tangents)
+    jac = VertexNormalsJacobian(faces, tangents)
+    with pytest.raises(ValueError, match=rf"vertices: expected shape \(B, {v.shape[0]}, 3\), got \(1, {v.shape[0] + 1}, 3\)"):
+        jac(torch.cat([v, v[:1]])[None])

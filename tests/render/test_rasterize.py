@@ -97,6 +97,8 @@ def test_behind_camera_skipped_and_batch():
         (dict(pixels=torch.zeros(1, 3, 3)), r"pixels: expected shape \(B, N, 2\)"),
         (dict(depth=torch.zeros(2, 3)), r"depth: expected shape \(B, N\) with B=1"),
         (dict(faces=torch.zeros(1, 3)), "faces: expected an integer tensor"),
+        (dict(faces=torch.ones(1, 3, dtype=torch.bool)), "faces: expected an integer tensor"),
+        (dict(faces=torch.tensor([[0, 1, 3]])), r"faces: expected vertex indices in \[0, 3\), got values in \[0, 3\]"),
         (dict(image_size=(0, 4)), "image_size"),
     ],
 )
@@ -106,6 +108,16 @@ def test_bad_input(kwargs, match, fn):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         fn(**args)
+
+
+def test_interpolation_checks_the_faces():
+    uv = torch.tensor([[[0.0, 0.0], [9.0, 0.0], [0.0, 9.0], [9.0, 9.0]]])
+    faces = torch.tensor([[0, 1, 2], [1, 3, 2]])
+    frags = rasterize_triangles(uv, torch.ones(1, 4), faces, (10, 10))
+    with pytest.raises(ValueError, match=r"faces: expected vertex indices in \[0, 4\)"):
+        interpolate_vertex_attributes(frags, torch.tensor([[0, 1, 2], [1, 4, 2]]), torch.ones(1, 4, 2))
+    with pytest.raises(ValueError, match="faces: expected the 2 or more triangles"):
+        interpolate_vertex_attributes(frags, faces[:1], torch.ones(1, 4, 2))
 
 
 @pytest.mark.parametrize("cull", [False, True])

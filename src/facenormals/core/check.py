@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "check_faces",
     "check_finite",
     "check_floating",
     "check_nonnegative",
@@ -120,6 +121,29 @@ def check_floating(x: Tensor, name: str) -> None:
     """Raise ``ValueError`` unless ``x`` has a floating-point dtype."""
     if not torch.is_floating_point(x):
         raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+
+
+def check_faces(faces: object, num_vertices: int, name: str = "faces") -> dict[str, int]:
+    """Check ``(F, 3)`` integer triangles indexing ``num_vertices`` vertices; returns ``{"F": F}``.
+
+    The range check reads tensor values, so it is skipped while ``torch.compile`` traces.
+
+    Example:
+        >>> check_faces(torch.tensor([[0, 1, 2]]), 3)
+        {'F': 1}
+        >>> check_faces(torch.tensor([[0, 1, 3]]), 3)
+        Traceback (most recent call last):
+        ...
+        ValueError: faces: expected vertex indices in [0, 3), got values in [0, 3]
+    """
+    dims = check_shape(faces, ["F", 3], name)
+    if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
+        raise ValueError(f"{name}: expected an integer tensor, got dtype {faces.dtype}")
+    if not torch.compiler.is_compiling() and faces.numel():
+        lo, hi = int(faces.min()), int(faces.max())
+        if lo < 0 or hi >= num_vertices:
+            raise ValueError(f"{name}: expected vertex indices in [0, {num_vertices}), got values in [{lo}, {hi}]")
+    return dims
 
 
 def check_finite(x: Tensor, name: str) -> None:

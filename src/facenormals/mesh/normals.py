@@ -48,7 +48,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_faces, check_floating, check_shape
 
 __all__ = ["VertexNormals", "vertex_normals"]
 
@@ -59,19 +59,6 @@ def _check_mode(mode: object) -> str:
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
     return mode  # type: ignore[return-value]
-
-
-def _check_faces(faces: object, num_vertices: int) -> None:
-    check_shape(faces, ["F", 3], "faces")
-    if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
-        raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
-    if torch.compiler.is_compiling() or faces.numel() == 0:
-        return
-    lo, hi = int(faces.min()), int(faces.max())
-    if lo < 0 or hi >= num_vertices:
-        raise ValueError(
-            f"faces: expected vertex indices in [0, {num_vertices}), got values in [{lo}, {hi}]"
-        )
 
 
 def _check_vertices(vertices: object, num_vertices: int | None = None) -> None:
@@ -154,7 +141,7 @@ def vertex_normals(vertices: Tensor, faces: Tensor, mode: str = "ring", eps: flo
                  [ 0.,  0.,  0.]]])
     """
     _check_vertices(vertices)
-    _check_faces(faces, vertices.shape[1])
+    check_faces(faces, vertices.shape[1])
     _check_mode(mode)
     corners = faces.to(device=vertices.device, dtype=torch.long).t().reshape(-1)
     normals = _face_normals(vertices, corners, mode == "ring", eps)
@@ -193,7 +180,7 @@ class VertexNormals(nn.Module):
         check_shape(faces, ["F", 3], "faces")
         if num_vertices is None:
             num_vertices = int(faces.max()) + 1 if faces.numel() else 0
-        _check_faces(faces, num_vertices)
+        check_faces(faces, num_vertices)
         self.mode = _check_mode(mode)
         self.eps = eps
         self.num_vertices = num_vertices

@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_faces, check_floating, check_shape
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -89,9 +89,7 @@ def _jvp(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float
 def _check(vertices: Tensor, faces: Tensor) -> dict[str, int]:
     dims = check_shape(vertices, ["B", "N", 3], "vertices")
     check_floating(vertices, "vertices")
-    check_shape(faces, ["F", 3], "faces")
-    if torch.is_floating_point(faces) or faces.dtype == torch.bool:
-        raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
+    check_faces(faces, dims["N"])
     return dims
 
 
@@ -167,18 +165,20 @@ class VertexNormalsJacobian(nn.Module):
 
     def __init__(self, faces: Tensor, basis: Tensor, eps: float = 1e-12) -> None:
         super().__init__()
-        check_shape(faces, ["F", 3], "faces")
-        check_shape(basis, ["K", "N", 3], "basis")
+        dims = check_shape(basis, ["K", "N", 3], "basis")
         check_floating(basis, "basis")
+        check_faces(faces, dims["N"])
         faces = faces.to(torch.long)
         d_e1, d_e2 = _tangent_edges(basis, faces)
         self.eps = eps
+        self.num_vertices = dims["N"]
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("d_e1", d_e1.contiguous(), persistent=False)
         self.register_buffer("d_e2", d_e2.contiguous(), persistent=False)
 
     def forward(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
-        _check(vertices, self.faces)
+        check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
+        check_floating(vertices, "vertices")
         return _jvp(vertices, self.faces, self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype), self.eps)
 
     def subset(self, vertex_index: Tensor) -> "_SubsetJacobian":

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_faces, check_floating, check_shape
 
 __all__ = ["Fragments", "interpolate_vertex_attributes", "rasterize_depth", "rasterize_triangles"]
 
@@ -51,11 +51,9 @@ def _bucket_sizes(extent: Tensor) -> list[int]:
 def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_size: tuple[int, int]) -> tuple[int, int, int]:
     dims = check_shape(pixels, ["B", "N", 2], "pixels")
     check_shape(depth, ["B", "N"], "depth", dims)
-    check_shape(faces, ["F", 3], "faces")
+    check_faces(faces, dims["N"])
     check_floating(pixels, "pixels")
     check_floating(depth, "depth")
-    if torch.is_floating_point(faces):
-        raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
     height, width = int(image_size[0]), int(image_size[1])
     if height <= 0 or width <= 0:
         raise ValueError(f"image_size: expected positive (H, W), got {image_size}")
@@ -208,6 +206,10 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
     """
     dims = check_shape(attributes, ["B", "N", "C"], "attributes")
     check_shape(fragments.face_index, ["B", "H", "W"], "fragments.face_index", dims)
+    count = check_faces(faces, dims["N"])["F"]
+    if fragments.face_index.numel() and int(fragments.face_index.max()) >= count:
+        raise ValueError(f"faces: expected the {int(fragments.face_index.max()) + 1} or more triangles the fragments "
+                         f"were rasterised from, got {count}")
     faces = faces.to(device=attributes.device, dtype=torch.long)
     batch = dims["B"]
     face = fragments.face_index.clamp(min=0)  # (B, H, W)
