@@ -116,7 +116,10 @@ def test_load_errors_name_the_file(tmp_path):
     [
         (dict(mean=torch.zeros(5, 2)), r"mean: expected shape \(N, 3\)"),
         (dict(shape_basis=torch.zeros(3, 4, 3)), r"shape_basis: expected shape \(K, N, 3\) with N=5"),
-        (dict(faces=torch.tensor([[0, 1, 5]])), r"faces: expected indices in \[0, 5\)"),
+        (dict(faces=torch.tensor([[0, 1, 5]])), r"faces: expected vertex indices in \[0, 5\)"),
+        (dict(mean=torch.full((5, 3), float("nan"))), "mean: expected finite values"),
+        (dict(shape_basis=torch.full((3, 5, 3), float("inf"))), "shape_basis: expected finite values"),
+        (dict(expression_basis=torch.full((1, 5, 3), float("nan"))), "expression_basis: expected finite values"),
         (dict(faces=torch.zeros(2, 3)), "faces: expected an integer tensor"),
         (dict(shape_std=torch.ones(4)), r"shape_std: expected shape \(K,\) with K=3"),
         (dict(shape_std=torch.tensor([1.0, 0.0, 1.0])), "shape_std: expected positive"),
@@ -136,6 +139,32 @@ def test_forward_errors():
         model(torch.zeros(2, 4, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"expression_coeffs: expected shape \(B, 2\) with B=2"):
         model(torch.zeros(2, 3, dtype=torch.float64), torch.zeros(3, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="shape_coeffs: expected dtype torch.float64 on cpu as the model"):
+        model(torch.zeros(2, 3, dtype=torch.float32))
+    with pytest.raises(ValueError, match="expression_coeffs: expected dtype torch.float64"):
+        model(torch.zeros(2, 3, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float32))
+
+
+def test_a_model_without_expressions_takes_empty_expression_coeffs():
+    full = tiny_model()
+    model = MorphableModel(full.mean, full.shape_basis, full.faces)
+    y = torch.randn(2, 3, dtype=torch.float64)
+    assert_close(model(y, torch.zeros(2, 0, dtype=torch.float64)), model(y))
+
+
+def test_load_rejects_non_finite_or_mistyped_arrays(tmp_path):
+    """A model file with NaNs, float faces (which would be truncated) or text arrays is a ModelFileError
+    naming the file, as with the other formats' loaders."""
+    model = tiny_model()
+    model.save(tmp_path / "good.npz")
+    arrays = dict(np.load(tmp_path / "good.npz"))
+    for key, value, match in (("mean", np.full((5, 3), np.nan), "mean: expected finite values"),
+                              ("faces", arrays["faces"] + 0.5, "array 'faces' has dtype float64, expected integer"),
+                              ("mean", np.full((5, 3), "x"), "array 'mean' has dtype <U1, expected floating-point")):
+        path = tmp_path / f"bad_{key}.npz"
+        np.savez(path, **{**arrays, key: value})
+        with pytest.raises(ModelFileError, match=f"bad_{key}.npz: .*{match}"):
+            MorphableModel.load(path)
 
 
 def test_ict_npz(ict_npz):

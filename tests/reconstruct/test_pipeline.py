@@ -318,6 +318,8 @@ def test_the_example_photo_with_the_builtin_head_stays_frontal():
     from facenormals.reconstruct import reconstruct_photos
 
     photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
-    rec = reconstruct_photos([photo], None, model="builtin", log=lambda message: None)
+    mine = builtin_head_model().to(torch.float64)  # a caller's model: used in float32, left as it is
+    rec = reconstruct_photos([photo], None, model=mine, log=lambda message: None)
+    assert mine.mean.dtype == torch.float64 and rec.model.mean.dtype == torch.float32
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 2]))) < 20.0
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 1]))) < 25.0

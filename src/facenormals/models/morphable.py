@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_faces, check_finite, check_floating, check_shape
 
 __all__ = ["MorphableModel", "ModelFileError"]
 
@@ -86,26 +86,23 @@ class MorphableModel(nn.Module):
         check_floating(mean, "mean")
         check_shape(shape_basis, ["K", "N", 3], "shape_basis", dims)
         check_floating(shape_basis, "shape_basis")
-        check_shape(faces, ["F", 3], "faces")
-        if torch.is_floating_point(faces) or faces.dtype == torch.bool:
-            raise ValueError(f"faces: expected an integer tensor, got dtype {faces.dtype}")
         num_vertices = dims["N"]
-        if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_vertices):
-            raise ValueError(
-                f"faces: expected indices in [0, {num_vertices}), got range "
-                f"[{int(faces.min())}, {int(faces.max())}]"
-            )
+        check_faces(faces, num_vertices)
+        check_finite(mean, "mean")
+        check_finite(shape_basis, "shape_basis")
         dtype = mean.dtype
         if shape_std is None:
             shape_std = torch.ones(dims["K"], dtype=dtype)
         shape_std = torch.as_tensor(shape_std, dtype=dtype)
         check_shape(shape_std, ["K"], "shape_std", dims)
-        if shape_std.numel() and not bool((shape_std > 0).all()):
-            raise ValueError("shape_std: expected positive standard deviations")
+        if shape_std.numel() and not bool((shape_std > 0).all() & torch.isfinite(shape_std).all()):
+            raise ValueError("shape_std: expected positive finite standard deviations")
         if expression_basis is None:
             expression_basis = torch.zeros(0, num_vertices, 3, dtype=dtype)
         expression_basis = torch.as_tensor(expression_basis)
         check_shape(expression_basis, ["E", "N", 3], "expression_basis", dims)
+        check_floating(expression_basis, "expression_basis")
+        check_finite(expression_basis, "expression_basis")
         landmarks = dict(landmarks or {})
         for key, index in landmarks.items():
             if not 0 <= int(index) < num_vertices:
@@ -155,17 +152,24 @@ class MorphableModel(nn.Module):
     def forward(self, shape_coeffs: Tensor, expression_coeffs: Tensor | None = None) -> Tensor:
         """Vertices of the heads with the given coefficients; see the class docstring for shapes."""
         dims = check_shape(shape_coeffs, ["B", self.num_shape], "shape_coeffs")
-        check_floating(shape_coeffs, "shape_coeffs")
+        self._check_coeffs(shape_coeffs, "shape_coeffs")
         batch = dims["B"]
         flat = self.mean.reshape(1, -1).expand(batch, -1)
         vertices = torch.addmm(flat, shape_coeffs, self.shape_basis.reshape(self.num_shape, -1))
         if expression_coeffs is not None:
             check_shape(expression_coeffs, ["B", self.num_expressions], "expression_coeffs", dims)
-            check_floating(expression_coeffs, "expression_coeffs")
+            self._check_coeffs(expression_coeffs, "expression_coeffs")
+        if expression_coeffs is not None and self.num_expressions:
             vertices = torch.addmm(
                 vertices, expression_coeffs, self.expression_basis.reshape(self.num_expressions, -1)
             )
         return vertices.reshape(batch, self.num_vertices, 3)
+
+    def _check_coeffs(self, coeffs: Tensor, name: str) -> None:
+        check_floating(coeffs, name)
+        if coeffs.dtype != self.mean.dtype or coeffs.device != self.mean.device:
+            raise ValueError(f"{name}: expected dtype {self.mean.dtype} on {self.mean.device} as the model "
+                             f"(convert the model with .to()), got {coeffs.dtype} on {coeffs.device}")
 
     def basis_matrix(self, with_expression: bool = False, dtype: torch.dtype | None = None) -> Tensor:
         r"""The basis as a Jacobian: row ``3 i + j`` holds :math:`\partial X_{ij} / \partial (y, e)`.
@@ -276,6 +280,11 @@ class MorphableModel(nn.Module):
             raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
         names = [str(n) for n in arrays.get("landmark_names", np.array([], dtype=str))]
         indices = arrays.get("landmark_indices", np.zeros(0, dtype=np.int64)).tolist()
+        for key, kind in (("mean", "f"), ("shape_basis", "f"), ("shape_std", "f"), ("expression_basis", "f"),
+                          ("faces", "iu")):
+            if key in arrays and arrays[key].dtype.kind not in kind:
+                expected = "floating-point" if kind == "f" else "integer"
+                raise ModelFileError(f"{path}: array {key!r} has dtype {arrays[key].dtype}, expected {expected}")
         try:
             return cls(
                 torch.from_numpy(arrays["mean"]).to(dtype),
@@ -291,5 +300,5 @@ class MorphableModel(nn.Module):
                 metadata=json.loads(str(arrays.get("metadata", "{}"))),
                 face_region=torch.from_numpy(arrays["face_region"].astype(bool)) if "face_region" in arrays else None,
             )
-        except ValueError as error:
+        except (ValueError, TypeError) as error:
             raise ModelFileError(f"{path}: inconsistent model arrays: {error}") from error

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -96,7 +97,8 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         if spec == "auto" and model.name == "builtin":
             log("ICT-FaceKit is not installed: using the built-in head "
                 "(`facenormals models fetch ict` gets the full model)")
-    model = model.to(torch.float32)
+    if model.mean.dtype != torch.float32:  # the fit runs in float32; a caller's model stays as it is
+        model = copy.deepcopy(model).to(torch.float32)
     net = load_weights(weights, device=device)
     timings["load"] = time.perf_counter() - t
     log(f"model {model.name} ({model.num_vertices} vertices, {model.num_shape} shape components); "
