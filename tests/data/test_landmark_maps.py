@@ -40,6 +40,8 @@ def test_border_landmark():
 
 
 def test_bad_inputs():
+    with pytest.raises(ValueError, match="maps: expected finite values"):  # a NaN peak is not "not found"
+        landmarks_from_maps(torch.full((1, 2, 4, 4), float("nan")))
     with pytest.raises(ValueError, match=r"points: expected shape \(B, L, 2\)"):
         landmark_maps(torch.zeros(2, 3), None, (8, 8))
     with pytest.raises(ValueError, match=r"visible: expected shape \(B, L\) with B=1"):

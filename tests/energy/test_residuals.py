@@ -172,6 +172,10 @@ def test_normal_residuals_bad_inputs():
         normal_residuals(normal_map.long(), pixels, normals)
     with pytest.raises(ValueError, match="dtype"):
         normal_residuals(normal_map, pixels, normals.float())
+    nan_map = normal_map.clone()
+    nan_map[0, :, 1, 1] = float("nan")  # would read as background and drop its vertices silently
+    with pytest.raises(ValueError, match="normal_map: expected finite values, got 3 NaN"):
+        normal_residuals(nan_map, pixels, normals)
     with pytest.raises(ValueError, match="weight"):
         normal_residuals(normal_map, pixels, normals, weight=-1.0)
     with pytest.raises(ValueError, match="weight"):

@@ -126,3 +126,9 @@ def test_landmark_correspondences():
     assert pairs[:, 1].tolist() == [1036, 1039, 1042, 1045, 1030, 1008]
     with pytest.raises(ValueError, match=r"target_landmarks: expected landmark 'right_ear_top'"):
         landmark_correspondences(named, ibug, ["right_ear_top"])
+
+
+def test_apply_similarity_names_a_mismatched_dtype():
+    points = torch.zeros(1, 4, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="rotation: expected dtype torch.float64"):
+        apply_similarity(points, torch.ones(1, dtype=torch.float64), torch.eye(3)[None], torch.zeros(1, 3, dtype=torch.float64))

@@ -89,6 +89,9 @@ def test_zero_depth_is_finite():
         ("intrinsics", torch.zeros(1, 3), r"intrinsics: expected shape \(B, 3\) with B=2"),
         ("intrinsics", torch.zeros(2, 4), r"intrinsics: expected shape \(B, 3\)"),
         ("points", torch.zeros(2, 5, 3, dtype=torch.long), "points: expected a floating-point"),
+        ("rotation", torch.eye(3, dtype=torch.float64).expand(2, 3, 3),
+         r"rotation: expected dtype torch.float32 \(the dtype of points\), got torch.float64"),
+        ("intrinsics", torch.ones(2, 3, dtype=torch.float64), "intrinsics: expected dtype torch.float32"),
     ],
 )
 def test_bad_input(which, bad, match):

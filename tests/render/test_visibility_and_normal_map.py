@@ -73,9 +73,13 @@ def test_unoccluded_points_against_a_loop():
     zbuffer[0, 2, 3] = float("inf")  # background
     pixels = torch.rand(2, 40, 2, generator=g, dtype=torch.float64) * torch.tensor([9.0, 7.0]) - 1.0
     depth = torch.rand(2, 40, generator=g, dtype=torch.float64) * 20 - 1.0
+    pixels[1, :3] = float("nan")  # points that project nowhere
     got = unoccluded_points(pixels, depth, zbuffer, tolerance=2.0)
     for b in range(2):
         for i in range(40):
+            if math.isnan(float(pixels[b, i, 0])):
+                assert not bool(got[b, i])
+                continue
             u, v = round(float(pixels[b, i, 0])), round(float(pixels[b, i, 1]))
             inside = 0 <= u <= 6 and 0 <= v <= 4 and float(depth[b, i]) > 0
             expected = inside and float(depth[b, i]) <= float(zbuffer[b, v, u]) + 2.0
@@ -83,3 +87,18 @@ def test_unoccluded_points_against_a_loop():
     assert 0 < int(got.sum()) < 80
     with pytest.raises(ValueError, match=r"zbuffer: expected shape \(B, H, W\)"):
         unoccluded_points(pixels, depth, zbuffer[0])
+
+
+def test_splat_zbuffer_ignores_points_that_project_nowhere():
+    from facenormals.render import splat_zbuffer
+
+    g = torch.Generator().manual_seed(4)
+    pixels = torch.rand(1, 30, 2, generator=g) * 8
+    depth = torch.rand(1, 30, generator=g) * 10 + 1
+    with_nan = torch.cat([pixels, torch.full((1, 2, 2), float("nan"))], 1)
+    expected = splat_zbuffer(pixels, depth, (8, 8))
+    assert torch.equal(splat_zbuffer(with_nan, torch.cat([depth, torch.ones(1, 2)], 1), (8, 8)), expected)
+    with pytest.raises(ValueError, match="image_size"):
+        splat_zbuffer(pixels, depth, (0, 8))
+    with pytest.raises(ValueError, match="depth: expected a floating-point tensor"):
+        splat_zbuffer(pixels, depth.long(), (8, 8))

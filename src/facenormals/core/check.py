@@ -21,6 +21,7 @@ __all__ = [
     "check_floating",
     "check_nonnegative",
     "check_same_dims",
+    "check_same_dtype_device",
     "check_shape",
     "check_tensor",
 ]
@@ -115,6 +116,23 @@ def check_same_dims(dims: dict[str, int], name: str, **expected: int) -> None:
     for key, value in expected.items():
         if dims.get(key) != value:
             raise ValueError(f"{name}: expected {key}={value}, got {key}={dims.get(key)}")
+
+
+def check_same_dtype_device(reference: Tensor, reference_name: str, **tensors: Tensor) -> None:
+    """Raise ``ValueError`` naming the first of ``tensors`` whose dtype or device differs from
+    ``reference``'s (torch would raise a RuntimeError deep inside, or silently promote).
+
+    Example:
+        >>> check_same_dtype_device(torch.zeros(2), "points", rotation=torch.zeros(2, dtype=torch.float64))
+        Traceback (most recent call last):
+        ...
+        ValueError: rotation: expected dtype torch.float32 (the dtype of points), got torch.float64
+    """
+    for name, x in tensors.items():
+        if x.dtype != reference.dtype:
+            raise ValueError(f"{name}: expected dtype {reference.dtype} (the dtype of {reference_name}), got {x.dtype}")
+        if x.device != reference.device:
+            raise ValueError(f"{name}: expected device {reference.device} (the device of {reference_name}), got {x.device}")
 
 
 def check_floating(x: Tensor, name: str) -> None:

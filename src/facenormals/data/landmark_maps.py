@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape
 
 __all__ = ["landmark_maps", "landmarks_from_maps"]
 
@@ -109,6 +109,7 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
     """
     dims = check_shape(maps, ["B", "L", "H", "W"], "maps")
     check_floating(maps, "maps")
+    check_finite(maps, "maps")  # a NaN peak would read as "not found"
     b, l, h, w = dims["B"], dims["L"], dims["H"], dims["W"]
     threshold = torch.as_tensor(threshold, dtype=maps.dtype, device=maps.device)
     if threshold.dim() != 0:

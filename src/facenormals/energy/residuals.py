@@ -21,20 +21,10 @@ import math
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_nonnegative, check_shape
+from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_same_dtype_device, check_shape
 from facenormals.sampling.bicubic import sample_bicubic
 
 __all__ = ["landmark_residuals", "normal_residuals", "prior_residuals"]
-
-
-def _check_same_dtype_device(reference: Tensor, reference_name: str, **tensors: Tensor) -> None:
-    for name, x in tensors.items():
-        if x.dtype != reference.dtype:
-            raise ValueError(f"{name}: expected dtype {reference.dtype} (the dtype of {reference_name}), got {x.dtype}")
-        if x.device != reference.device:
-            raise ValueError(
-                f"{name}: expected device {reference.device} (the device of {reference_name}), got {x.device}"
-            )
 
 
 def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int], count: str, device: torch.device) -> None:
@@ -103,7 +93,8 @@ def normal_residuals(
 
     Raises:
         ValueError: on wrong shapes, mismatched batch or vertex counts, non-floating inputs,
-            mismatched dtypes, a non-bool ``visible`` or a negative ``weight``.
+            mismatched dtypes, a non-bool ``visible``, a negative ``weight`` or a non-finite
+            ``normal_map``.
 
     Shape:
         - normal_map: :math:`(B, 3, H, W)`
@@ -130,7 +121,8 @@ def normal_residuals(
     check_shape(normals, ["B", "N", 3], "normals", dims)
     for name, x in (("normal_map", normal_map), ("pixels", pixels), ("normals", normals)):
         check_floating(x, name)
-    _check_same_dtype_device(normal_map, "normal_map", pixels=pixels, normals=normals)
+    check_same_dtype_device(normal_map, "normal_map", pixels=pixels, normals=normals)
+    check_finite(normal_map, "normal_map")  # a NaN would read as background and its vertices drop out silently
     _check_mask(visible, "visible", dims, "N", normal_map.device)
     scale = math.sqrt(check_nonnegative(weight, "weight"))
 
@@ -189,7 +181,7 @@ def landmark_residuals(
     check_shape(targets, ["B", "L", 2], "targets", dims)
     check_floating(pixels, "pixels")
     check_floating(targets, "targets")
-    _check_same_dtype_device(pixels, "pixels", targets=targets)
+    check_same_dtype_device(pixels, "pixels", targets=targets)
     _check_mask(mask, "mask", dims, "L", pixels.device)
     scale = math.sqrt(check_nonnegative(weight, "weight"))
 
@@ -240,7 +232,7 @@ def prior_residuals(coeffs: Tensor, std: Tensor, weight: float = 1.0) -> Tensor:
         check_shape(std, ["B", "K"], "std", dims)
     check_floating(coeffs, "coeffs")
     check_floating(std, "std")
-    _check_same_dtype_device(coeffs, "coeffs", std=std)
+    check_same_dtype_device(coeffs, "coeffs", std=std)
     scale = math.sqrt(check_nonnegative(weight, "weight"))
     if not torch.compiler.is_compiling() and not bool((std > 0).all()):
         raise ValueError(f"std: expected values > 0, got {int((~(std > 0)).sum())} entries <= 0 or NaN")

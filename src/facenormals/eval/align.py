@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape
 from facenormals.models.landmarks import IBUG68_OF_LANDMARK
 
 __all__ = ["DEFAULT_ALIGNMENT_LANDMARKS", "apply_similarity", "fit_similarity", "landmark_correspondences"]
@@ -131,6 +131,8 @@ def apply_similarity(points: Tensor, s: Tensor, rotation: Tensor, translation: T
     check_shape(s, ["B"], "s", dims)
     check_shape(rotation, ["B", 3, 3], "rotation", dims)
     check_shape(translation, ["B", 3], "translation", dims)
+    check_floating(points, "points")
+    check_same_dtype_device(points, "points", s=s, rotation=rotation, translation=translation)
     return s[:, None, None] * (points @ rotation.transpose(1, 2)) + translation[:, None, :]
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_same_dtype_device, check_shape
 
 __all__ = ["project_points", "projection_jacobian", "transform_points"]
 
@@ -14,8 +14,8 @@ def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor) -> dict[s
     dims = check_shape(points, ["B", "N", 3], "points")
     check_shape(rotation, ["B", 3, 3], "rotation", dims)
     check_shape(translation, ["B", 3], "translation", dims)
-    for name, x in (("points", points), ("rotation", rotation), ("translation", translation)):
-        check_floating(x, name)
+    check_floating(points, "points")
+    check_same_dtype_device(points, "points", rotation=rotation, translation=translation)
     return dims
 
 
@@ -91,7 +91,7 @@ def project_points(
     """
     dims = _check_pose(points, rotation, translation)
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
-    check_floating(intrinsics, "intrinsics")
+    check_same_dtype_device(points, "points", intrinsics=intrinsics)
     camera = torch.matmul(points + translation[:, None, :], rotation.transpose(1, 2))
     z = camera[..., 2]
     z_safe = torch.where(z.abs() < eps, torch.full_like(z, eps) * torch.where(z < 0, -1.0, 1.0), z)

@@ -52,10 +52,18 @@ def visible_vertices(
     dims = check_shape(pixels, ["B", "N", 2], "pixels")
     check_shape(camera_normals, ["B", "N", 3], "camera_normals", dims)
     check_shape(camera_points, ["B", "N", 3], "camera_points", dims)
+    check_floating(camera_normals, "camera_normals")
+    check_floating(camera_points, "camera_points")
     with torch.no_grad():
         facing = (camera_normals * camera_points).sum(-1) / camera_points.norm(dim=-1).clamp_min(1e-12)
         front = facing < -min_facing
     return front & unoccluded_points(pixels, depth, zbuffer, tolerance)
+
+
+def _nearest_pixel(pixels: Tensor) -> tuple[Tensor, Tensor]:
+    """The nearest pixel centre's ``(u, v)``; a point that projects nowhere (NaN) goes to ``-1``, outside."""
+    rounded = torch.round(pixels).nan_to_num(nan=-1.0)
+    return rounded[..., 0], rounded[..., 1]
 
 
 @torch.no_grad()
@@ -71,7 +79,7 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
         tolerance: depth slack in mm.
 
     Returns:
-        ``(B, N)`` bool.
+        ``(B, N)`` bool; False for points that project nowhere (NaN pixels).
 
     Shape:
         - pixels: :math:`(B, N, 2)`; depth: :math:`(B, N)`; zbuffer: :math:`(B, H, W)`
@@ -88,8 +96,7 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     for name, x in (("pixels", pixels), ("depth", depth), ("zbuffer", zbuffer)):
         check_floating(x, name)
     height, width = zdims["H"], zdims["W"]
-    u = torch.round(pixels[..., 0])
-    v = torch.round(pixels[..., 1])
+    u, v = _nearest_pixel(pixels)
     inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)
     index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
     surface = torch.gather(zbuffer.reshape(dims["B"], -1), 1, index)
@@ -117,9 +124,13 @@ def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], ra
     """
     dims = check_shape(pixels, ["B", "N", 2], "pixels")
     check_shape(depth, ["B", "N"], "depth", dims)
+    check_floating(pixels, "pixels")
+    check_floating(depth, "depth")
     height, width = int(image_size[0]), int(image_size[1])
+    if height <= 0 or width <= 0:
+        raise ValueError(f"image_size: expected positive (H, W), got {tuple(image_size)}")
     batch = dims["B"]
-    u, v = torch.round(pixels[..., 0]), torch.round(pixels[..., 1])
+    u, v = _nearest_pixel(pixels)
     ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0) & torch.isfinite(depth)
     index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
     values = torch.where(ok, depth, torch.full_like(depth, float("inf")))
