@@ -100,8 +100,15 @@ def test_bad_input(model, head):
     maps[0, 0, 0, 0, 0] = float("nan")
     with pytest.raises(ValueError, match="normal_maps: expected finite values"):
         fit_head(maps, obs.landmarks, model)
-    with pytest.raises(ValueError, match=r"landmarks: expected shape \(B, V, 24, 2\)"):
+    with pytest.raises(ValueError, match=r"landmarks: expected shape \(V, 24, 2\) or \(B, V, 24, 2\) with B=1, V=1, "
+                                         r"got \(1, 1, 10, 2\)"):
         fit_head(obs.normal_maps, obs.landmarks[..., :10, :], model)
+    with pytest.raises(ValueError, match=r"intrinsics: expected shape \(V, 3\) or \(B, V, 3\) with B=1, V=1, got \(2, 3\)"):
+        fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics[0].expand(2, 3))
+    with pytest.raises(ValueError, match="landmark_mask: expected a bool tensor, got dtype torch.float32"):
+        fit_head(obs.normal_maps, obs.landmarks, model, landmark_mask=torch.ones(1, 24))
+    with pytest.raises(ValueError, match=r"landmark_mask: expected shape .* got \(2, 24\)"):
+        fit_head(obs.normal_maps, obs.landmarks, model, landmark_mask=torch.ones(2, 24, dtype=torch.bool))
     with pytest.raises(ValueError, match="rounds"):
         fit_head(obs.normal_maps, obs.landmarks, model, rounds=0)
     with pytest.raises(ValueError, match="visibility_rounds: expected >= 1"):

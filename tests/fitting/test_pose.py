@@ -75,6 +75,8 @@ def test_too_few_landmarks_names_the_view():
         prealign_pose(uv, model.mean[model.landmark_indices], K.repeat(2, 1))
     with pytest.raises(ValueError, match="init"):
         prealign_pose(uv[:1], model.mean[model.landmark_indices], K, init="guess")
+    with pytest.raises(ValueError, match="mask: expected a bool tensor, got dtype torch.float32"):
+        prealign_pose(uv[:1], model.mean[model.landmark_indices], K, mask=torch.ones(1, 24))
 
 
 @pytest.mark.parametrize("init", ["pnp", "multistart"])

@@ -16,7 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_shape, check_tensor
 from facenormals.fitting.pose import prealign_pose
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
@@ -91,11 +91,19 @@ class FitResult:
                 f"({self.reasons[subject]}); energies: {terms}; {views}")
 
 
-def _as_views(x: Tensor, name: str, tail: list) -> Tensor:
-    """Accept ``(V, ...)`` for one subject or ``(B, V, ...)``; return ``(B, V, ...)``."""
+def _as_views(x: Tensor, name: str, tail: list, views: dict[str, int] | None = None) -> Tensor:
+    """Accept ``(V, ...)`` for one subject or ``(B, V, ...)``; return ``(B, V, ...)``. ``views``
+    (``{"B": B, "V": V}``) binds the leading sizes to those of the normal maps."""
+    check_tensor(x, name)
+    got = tuple(x.shape)
     if x.dim() == len(tail) + 1:
         x = x[None]
-    check_shape(x, ["B", "V", *tail], name)
+    try:
+        check_shape(x, ["B", "V", *tail], name, dict(views) if views else None)
+    except ValueError:
+        rest = ", ".join(str(t) for t in tail)
+        sizes = f" with B={views['B']}, V={views['V']}" if views else ""
+        raise ValueError(f"{name}: expected shape (V, {rest}) or (B, V, {rest}){sizes}, got {got}") from None
     return x
 
 
@@ -194,21 +202,23 @@ def fit_head(
     check_scale("landmark_robust_scale", landmark_robust_scale)
     normal_maps = _as_views(normal_maps, "normal_maps", [3, "H", "W"])
     B, V, _, H, W = normal_maps.shape
-    landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2])
-    if landmarks.shape[:2] != (B, V):
-        raise ValueError(f"landmarks: expected (B, V) = {(B, V)} as in normal_maps, got {tuple(landmarks.shape[:2])}")
+    views = {"B": B, "V": V}
+    landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2], views)
     if not bool(torch.isfinite(normal_maps).all()):
         raise ValueError("normal_maps: expected finite values, got NaN or infinite entries")
     dtype, device = model.mean.dtype, model.mean.device
     normal_maps, landmarks = normal_maps.to(dtype), landmarks.to(dtype)
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
-    intrinsics = _as_views(intrinsics, "intrinsics", [3]).to(dtype)
+    intrinsics = _as_views(intrinsics, "intrinsics", [3], views).to(dtype)
     if not bool((intrinsics[..., 0] > 0).all()):
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[..., 0].min().item():g}")
     if landmark_mask is None:
         landmark_mask = torch.isfinite(landmarks).all(-1)
-    landmark_mask = _as_views(landmark_mask, "landmark_mask", [landmarks.shape[2]]) & torch.isfinite(landmarks).all(-1)
+    landmark_mask = _as_views(landmark_mask, "landmark_mask", [landmarks.shape[2]], views)
+    if landmark_mask.dtype != torch.bool:
+        raise ValueError(f"landmark_mask: expected a bool tensor, got dtype {landmark_mask.dtype}")
+    landmark_mask = landmark_mask & torch.isfinite(landmarks).all(-1)
     foreground = normal_maps.norm(dim=2) > 0.5
     view_weights = (foreground.flatten(2).sum(-1) > 0).to(dtype)  # no face in the map: landmarks only
 
@@ -227,7 +237,7 @@ def fit_head(
         angles, translation = pose.angles.reshape(B, V, 3), pose.translation.reshape(B, V, 3)
         pre_rms = pose.rms_px.reshape(B, V)
     else:
-        angles, translation = (_as_views(p, n, [3]).to(dtype) for p, n in zip(initial_pose, ("angles", "translation")))
+        angles, translation = (_as_views(p, n, [3], views).to(dtype) for p, n in zip(initial_pose, ("angles", "translation")))
         pre_rms = torch.full((B, V), float("nan"), dtype=dtype, device=device)
     t_pre = time.perf_counter()
 

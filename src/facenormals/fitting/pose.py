@@ -197,6 +197,8 @@ def prealign_pose(
     if mask is None:
         mask = torch.isfinite(landmarks).all(-1)
     check_shape(mask, ["B", "L"], "mask", dims)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask: expected a bool tensor, got dtype {mask.dtype}")
     mask = mask & torch.isfinite(landmarks).all(-1)
     counts = mask.sum(1).tolist()
     for view, count in enumerate(counts):
