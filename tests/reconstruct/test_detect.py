@@ -22,6 +22,20 @@ def test_no_face_in_a_flat_image_or_a_gradient():
 def test_bad_image_argument():
     with pytest.raises(ValueError, match="image"):
         detect_faces(np.zeros((10, 10, 3), np.float32))
+    with pytest.raises(ValueError, match=r"image: expected a uint8 array \(H, W\[, 1\|3\|4\]\), got uint8 \(10, 10, 2\)"):
+        detect_faces(np.zeros((10, 10, 2), np.uint8))
+    assert detect_faces(np.full((40, 40, 1), 128, np.uint8)) == []  # one-channel grey is grey
+
+
+@pytest.mark.parametrize("box,size,match", [
+    ((0.0, 0.0, float("nan")), 8, "box: expected finite"),
+    ((float("inf"), 0.0, 4.0), 8, "box: expected finite"),
+    ((0.0, 0.0, 0.0), 8, "box: expected finite"),
+    ((0.0, 0.0, 4.0), 0, "size: expected a positive integer, got 0"),
+])
+def test_crop_square_bad_box_or_size(box, size, match):
+    with pytest.raises(ValueError, match=match):
+        crop_square(np.zeros((10, 10, 3), np.uint8), box, size)
 
 
 def test_grouping_prefers_many_overlapping_hits():

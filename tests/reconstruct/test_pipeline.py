@@ -229,8 +229,31 @@ def test_cli_errors_name_the_file_and_keep_earlier_output(tmp_path, random_weigh
         result = _cli(bad, "-o", out, "--weights", random_weights, "--model", "builtin")
         assert result.returncode != 0
         assert f"{bad}: {message}" in result.stderr and "Traceback" not in result.stderr
+    for box, message in (("nan,0,100,100", "face box: expected finite numbers"),
+                         ("0,0,1e7,1e7", "face box (0.0, 0.0, 10000000.0, 10000000.0) does not frame a face in the "
+                                         "320x240 image"),
+                         ("400,0,50,50", "face box (400.0, 0.0, 50.0, 50.0) does not frame a face")):
+        result = _cli(flat, "-o", out, "--weights", random_weights, "--model", "builtin", "--box", box)
+        assert result.returncode != 0
+        assert f"{flat}: {message}" in result.stderr and "Traceback" not in result.stderr, result.stderr
     assert (out / "head.ply").read_text() == "earlier result"
     assert sorted(p.name for p in out.iterdir()) == ["head.ply"]
+
+
+def test_a_view_with_too_few_landmarks_is_named(oracle):
+    """Fewer than 4 landmarks found (no face in the crop, or a crop that misses it): a NoFaceError
+    naming the view, by its file where given, before the fit."""
+    from facenormals.reconstruct import NoFaceError
+
+    model, views, order = oracle
+    landmarks = views.landmarks[0][:2, order].clone()
+    landmarks[1, 3:] = float("nan")
+    net = OracleNet(views.normal_maps[0][:2], landmarks)
+    with pytest.raises(NoFaceError, match="side.jpg: the network found 3 of the model's 24 landmarks"):
+        reconstruct_views(torch.zeros(2, 3, 128, 128), net, model, mirror=False, drop_hidden=False,
+                          view_names=["front.jpg", "side.jpg"])
+    with pytest.raises(NoFaceError, match="view 1: the network found 3"):
+        reconstruct_views(torch.zeros(2, 3, 128, 128), net, model, mirror=False, drop_hidden=False)
 
 
 def test_cli_rejects_a_box_count_mismatch(tmp_path, random_weights):

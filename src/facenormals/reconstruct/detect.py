@@ -14,6 +14,7 @@ hits are false positives far more often than faces.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -89,9 +90,12 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
     """
     import cv2
 
-    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ValueError(f"image: expected a uint8 array (H, W[, 3]), got "
+    if (not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3)
+            or (image.ndim == 3 and image.shape[2] not in (1, 3, 4))):
+        raise ValueError(f"image: expected a uint8 array (H, W[, 1|3|4]), got "
                          f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
     grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
     scale = min(1.0, max_side / max(grey.shape))
     if scale < 1.0:
@@ -136,8 +140,10 @@ def crop_square(image: np.ndarray, box: tuple[float, float, float], size: int = 
     if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"image: expected an array (H, W, 3), got shape {getattr(image, 'shape', None)}")
     x0, y0, side = (float(v) for v in box)
-    if not side > 0:
-        raise ValueError(f"box: expected a positive side, got {side}")
+    if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(side) and side > 0):
+        raise ValueError(f"box: expected finite (x0, y0, side) with side > 0, got {tuple(box)}")
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size: expected a positive integer, got {size!r}")
     s = side / size
     # crop pixel u -> image x = s*u + (x0 + 0.5*s - 0.5); warpAffine maps destination to source.
     matrix = np.array([[s, 0.0, x0 + 0.5 * s - 0.5], [0.0, s, y0 + 0.5 * s - 0.5]])

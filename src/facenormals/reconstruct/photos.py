@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -37,8 +38,12 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
         face = faces[0]
     else:
         x, y, w, h = (float(v) for v in box)
-        if not (w > 0 and h > 0):
-            raise ValueError(f"box: expected a positive width and height, got {box}")
+        H, W = image.shape[:2]
+        if not all(math.isfinite(v) for v in (x, y, w, h)) or not (w > 0 and h > 0):
+            raise ValueError(f"{path}: face box: expected finite numbers and a positive width and height, got {box}")
+        if not (x < W and y < H and x + w > 0 and y + h > 0) or max(w, h) > 4 * max(H, W):
+            raise ValueError(f"{path}: face box {box} does not frame a face in the {W}x{H} image (it must overlap "
+                             "the image and be at most 4 times its size)")
         face = FaceBox(x, y, w, h)
     crop_box = head_crop_box(face)
     return PhotoView(crop=crop_square(image, crop_box, size), box=crop_box, image_size=image.shape[:2], path=str(path))
@@ -77,6 +82,8 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     if str(device).startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"device: {device!r} requested but this torch build ({torch.__version__}) has no CUDA "
                          "device; use --device cpu")
+    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ValueError(f"{out_dir}: the output folder exists as a file")
     boxes = list(boxes) if boxes is not None else [None] * len(paths)
     if len(boxes) != len(paths):
         raise ValueError(f"boxes: expected one per image ({len(paths)}), got {len(boxes)}")
@@ -108,7 +115,8 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     crops = torch.from_numpy(np.stack([v.crop for v in views])).permute(0, 3, 1, 2).float() / 255.0
     if fit_weights is not None:
         fit_options["weights"] = fit_weights
-    maps, fit = reconstruct_views(crops, net, model, log=log, mirror=mirror, **fit_options)
+    maps, fit = reconstruct_views(crops, net, model, log=log, mirror=mirror, view_names=[str(p) for p in paths],
+                                  **fit_options)
     timings["network"] = maps.seconds
     timings["fit"] = float(fit.timings.get("total_s", time.perf_counter() - t - maps.seconds))
     timings["reconstruct"] = time.perf_counter() - t

@@ -18,7 +18,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -30,6 +30,7 @@ from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, MorphableModel
+from facenormals.reconstruct.detect import NoFaceError
 from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
@@ -239,7 +240,8 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
 
 def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableModel,
                       focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
-                      mirror: bool = True, drop_hidden: bool = True, **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
+                      mirror: bool = True, drop_hidden: bool = True, view_names: Sequence[str] | None = None,
+                      **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
     """Predict the maps of ``V`` crops of one person and fit one shared head to all of them.
 
     Args:
@@ -252,11 +254,13 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         drop_hidden: drop the detected landmarks that the mean head, pre-aligned to them, hides
             (:func:`~facenormals.fitting.drop_hidden_landmarks`), and fit from that pre-alignment;
             ``maps.found`` and ``maps.landmarks`` then hold the landmarks the fit uses.
+        view_names: how error messages name the views (e.g. their files); default ``view 0``, ...
         **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
             :func:`network_fit_weights` of ``net``).
 
     Raises:
-        ValueError: naming the view when it has fewer than 4 detected landmarks.
+        NoFaceError: naming the view when the network finds fewer than 4 of the model's landmarks in
+            it (too few to pre-align: no face, or a crop that misses it).
     """
     log = log or (lambda message: None)
     fit_options.setdefault("weights", network_fit_weights(net))
@@ -273,6 +277,14 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         maps.landmarks[:, channels] = maps.landmarks[:, channels].masked_fill(inputs.dropped[..., None], float("nan"))
         log(f"landmarks hidden by the pre-aligned head, dropped per view: "
             f"{', '.join(str(int(n)) for n in inputs.dropped.sum(1).tolist())}")
+    names = list(view_names) if view_names is not None else [f"view {v}" for v in range(V)]
+    if len(names) != V:
+        raise ValueError(f"view_names: expected one per view ({V}), got {len(names)}")
+    for name, count in zip(names, torch.isfinite(inputs.landmarks).all(-1).sum(1).tolist()):
+        if count < 4:
+            raise NoFaceError(f"{name}: the network found {count} of the model's {len(model.landmark_names)} "
+                              "landmarks, too few (< 4) to pre-align a head: is there a face in its crop? (a "
+                              "profile view may need its face box, --box X,Y,W,H)")
     start = time.perf_counter()
     fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics, **fit_options)
     if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
