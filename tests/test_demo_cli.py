@@ -79,3 +79,8 @@ def test_evaluate_command(tmp_path, capsys):
     assert "similarity" in out and (tmp_path / "r.json").exists()
     assert main(["evaluate", str(tmp_path / "nope.ply"), str(ref), "--model", "builtin"]) == 1
     assert "nope.ply: mesh file not found" in capsys.readouterr().err
+    bad = tmp_path / "landmarks.json"
+    bad.write_text("not json")
+    for landmarks in (bad, tmp_path):
+        assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(landmarks)]) == 1
+        assert f"{landmarks}: expected a JSON object of landmark name -> vertex index" in capsys.readouterr().err

@@ -103,8 +103,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             "the reference must share the model's topology (its face region and landmarks are used); pass --model"
         )
     if args.prediction_landmarks:
-        with open(args.prediction_landmarks) as handle:
-            pred_landmarks = {str(k): int(v) for k, v in json.load(handle).items()}
+        try:
+            with open(args.prediction_landmarks) as handle:
+                pred_landmarks = {str(k): int(v) for k, v in json.load(handle).items()}
+        except (OSError, ValueError, TypeError, AttributeError) as error:
+            raise ValueError(f"{args.prediction_landmarks}: expected a JSON object of landmark name -> vertex index "
+                             f"({type(error).__name__}: {error})") from None
     elif pred_v.shape[0] == model.num_vertices:
         pred_landmarks = model.landmarks
     else:

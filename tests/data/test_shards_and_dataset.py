@@ -145,6 +145,41 @@ def test_dataset_errors(tmp_path, dataset_root):
         SyntheticHeadDataset(tmp_path)
     with pytest.raises(ValueError, match="sigma"):
         SyntheticHeadDataset(dataset_root, sigma=0)
+    (tmp_path / "manifest.json").write_text(json.dumps(["a", "list"]))
+    with pytest.raises(ValueError, match="manifest.json: expected a JSON object, got list"):
+        SyntheticHeadDataset(tmp_path)
+    manifest = json.loads((dataset_root / "manifest.json").read_text())
+    del manifest["count"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"manifest.json: the manifest lacks \['count'\]"):
+        SyntheticHeadDataset(tmp_path)
+
+
+def test_a_corrupt_shard_is_named(tmp_path, dataset_root):
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    data = (root / "shard_00001.npz").read_bytes()
+    (root / "shard_00001.npz").write_bytes(data[: len(data) // 2])  # cut off, like an interrupted copy
+    dataset = SyntheticHeadDataset(root)
+    assert dataset[0]["image"].shape == (3, 128, 128)  # the other shards still read
+    with pytest.raises(ValueError, match=r"shard_00001.npz: corrupt shard, cannot read sample 0"):
+        dataset[4]
+    (root / "shard_00001.npz").write_bytes(b"not a zip archive")
+    with pytest.raises(ValueError, match=r"shard_00001.npz: corrupt shard"):
+        SyntheticHeadDataset(root)[5]
+
+
+def test_bad_output_or_background_folder_writes_nothing(tmp_path):
+    """Checked before anything is written: a rerun with the typo fixed must not find a stale manifest."""
+    with pytest.raises(ValueError, match="config.background_folders: /nonexistent/photos is not a folder"):
+        write_dataset(tmp_path / "s", 1, model_spec="builtin", progress=False,
+                      config=SynthConfig(background_folders=("/nonexistent/photos",)))
+    assert not (tmp_path / "s").exists()
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="out_dir: .*file exists and is not a folder"):
+        write_dataset(tmp_path / "file", 1, model_spec="builtin", progress=False)
 
 
 def test_worker_processes_write_the_same_bytes(dataset_root, tmp_path):

@@ -35,6 +35,8 @@ def test_mirror_output_against_a_pixel_loop():
             assert torch.equal(back.landmarks[:, c, :, x], out.landmarks[:, perm[c], :, xm])
     with pytest.raises(ValueError, match="output.landmarks"):
         mirror_output(out, [0, 1])
+    with pytest.raises(ValueError, match="permutation: expected a permutation of 0..23"):
+        mirror_output(out, [0] * 24)
 
 
 class _Mirrorable(nn.Module):

@@ -49,6 +49,9 @@ def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
     torch.save({"format": "something else"}, path)
     with pytest.raises(ValueError, match="not a facenormals network weight file"):
         load_weights(path)
+    torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "state_dict": net.state_dict()}, path)
+    with pytest.raises(ValueError, match="w.pt: the weight file lacks its architecture"):
+        load_weights(path)
 
 
 def test_update_weight_metadata_keeps_the_weights(tmp_path):

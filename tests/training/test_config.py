@@ -23,6 +23,12 @@ def test_bad_values_name_the_field(field, value):
         TrainConfig(data="d", out="o", **{field: value})
 
 
+def test_an_output_path_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "run").write_text("x")
+    with pytest.raises(ValueError, match="out: .*run exists and is not a folder"):
+        TrainConfig(data="d", out=str(tmp_path / "run"))
+
+
 def test_round_trip_and_unknown_fields():
     c = TrainConfig(data="d", out="o", steps=7)
     assert TrainConfig.from_dict(c.to_dict()) == c

@@ -62,6 +62,8 @@ def test_calibrated_threshold_is_stored_and_used():
     hazy.metadata = {"landmark_threshold": threshold}
     assert landmark_threshold(hazy) == threshold
     assert evaluate_network(hazy, data, mirror=False).visibility_accuracy == 1.0
+    with pytest.raises(ValueError, match="dataset: expected at least one sample"):
+        calibrate_landmark_threshold(hazy, data, max_samples=0, mirror=False)
 
 
 def test_per_landmark_thresholds_separate_what_one_cannot():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Callable
 
@@ -114,10 +115,16 @@ class SyntheticHeadDataset(Dataset):
         if not -len(self) <= item < len(self):
             raise IndexError(f"index {item} is out of range for {len(self)} samples")
         shard, i = self._items[item]
-        archive, table = self._shard(shard)
-        image = torch.from_numpy(read_member(archive, f"image/{i:04d}")).permute(2, 0, 1).float() / 255.0
-        normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
-        segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
+        try:
+            archive, table = self._shard(shard)
+            image = torch.from_numpy(read_member(archive, f"image/{i:04d}")).permute(2, 0, 1).float() / 255.0
+            normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
+            segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error) as error:
+            self._archives.pop(shard, None)
+            raise ValueError(f"{self.root / shard_name(shard)}: corrupt shard, cannot read sample {i} "
+                             f"({type(error).__name__}: {error}); delete the file and run `facenormals synth` "
+                             "with the same arguments to write it again") from None
         sample = {name: torch.from_numpy(np.array(table[name][i])) for name in SHARD_ARRAYS}
         size = (self.image_size, self.image_size)
         if self.with_landmark_maps:

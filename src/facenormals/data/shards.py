@@ -95,10 +95,15 @@ def read_manifest(root: str | Path) -> dict:
         manifest = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: cannot read the manifest ({error})") from error
+    if not isinstance(manifest, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(manifest).__name__}")
     if manifest.get("format") != FORMAT_NAME:
         raise ValueError(f"{path}: format is {manifest.get('format')!r}, expected {FORMAT_NAME!r}")
     if int(manifest.get("version", 0)) > FORMAT_VERSION:
         raise ValueError(f"{path}: format version {manifest.get('version')} is newer than supported ({FORMAT_VERSION})")
+    missing = [key for key in ("count", "shard_size", "image_size", "normal_scale", "model") if key not in manifest]
+    if missing:
+        raise ValueError(f"{path}: the manifest lacks {missing}")
     return manifest
 
 
@@ -279,7 +284,12 @@ def write_dataset(
         raise ValueError(f"config: expected a SynthConfig, got {type(config).__name__}")
     if render_threads is not None:
         render_threads = _check_positive(render_threads, "render_threads")
+    for folder in config.background_folders:  # before anything is written: a typo must not leave a manifest
+        if not Path(folder).is_dir():
+            raise ValueError(f"config.background_folders: {folder} is not a folder")
     root = Path(out_dir)
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"out_dir: {root} exists and is not a folder")
     root.mkdir(parents=True, exist_ok=True)
     model = load_model(model_spec)
     manifest = {

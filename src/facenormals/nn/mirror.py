@@ -60,6 +60,8 @@ def mirror_output(output: UNetOutput, permutation: Sequence[int]) -> UNetOutput:
     """
     check_shape(output.normals, ["B", 3, "H", "W"], "output.normals")
     check_shape(output.landmarks, ["B", len(permutation), "H", "W"], "output.landmarks")
+    if sorted(int(i) for i in permutation) != list(range(len(permutation))):
+        raise ValueError(f"permutation: expected a permutation of 0..{len(permutation) - 1}, got {list(permutation)}")
     sign = torch.tensor([-1.0, 1.0, 1.0], dtype=output.normals.dtype, device=output.normals.device).view(1, 3, 1, 1)
     index = torch.as_tensor(list(permutation), device=output.landmarks.device)
     return UNetOutput(output.normals.flip(-1) * sign, output.landmarks.flip(-1).index_select(1, index),

@@ -43,6 +43,11 @@ def _read_payload(path: Path) -> dict:
         raise ValueError(f"{path}: not a facenormals network weight file")
     if payload.get("version") != WEIGHTS_VERSION:
         raise ValueError(f"{path}: weight format version {payload.get('version')}, expected {WEIGHTS_VERSION}")
+    arch, state = payload.get("architecture"), payload.get("state_dict")
+    if (not isinstance(arch, dict) or not {"num_landmarks", "base_channels", "depth"} <= set(arch)
+            or not isinstance(state, dict)):
+        raise ValueError(f"{path}: the weight file lacks its architecture (num_landmarks, base_channels, depth) "
+                         "or its state_dict")
     return payload
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 __all__ = ["TrainConfig"]
 
@@ -80,6 +81,8 @@ class TrainConfig:
     init: str | None = None
 
     def __post_init__(self) -> None:
+        if Path(self.out).exists() and not Path(self.out).is_dir():
+            raise ValueError(f"out: {self.out} exists and is not a folder")
         for name in ("steps", "batch_size", "log_every", "checkpoint_every", "eval_every", "eval_samples",
                      "base_channels", "depth"):
             value = getattr(self, name)

@@ -184,6 +184,8 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     """
     if max_samples is not None:
         dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
+    if len(dataset) == 0:
+        raise ValueError("dataset: expected at least one sample to calibrate on, got none")
     if candidates is None:
         candidates = torch.linspace(0.05, 0.95, 37)
     was_training = net.training
