@@ -76,7 +76,7 @@ def test_backface_culling_leaves_the_visible_surface_of_a_closed_head():
 
     model = builtin_head_model()
     R, t = torch.eye(3, dtype=torch.float64)[None], torch.tensor([[0.0, 0.0, 600.0]], dtype=torch.float64)
-    uv, z = project_points(model.mean[None], R, t, torch.tensor([[300.0, 31.5, 31.5]], dtype=torch.float64))
+    uv, z = project_points(model.mean[None].double(), R, t, torch.tensor([[300.0, 31.5, 31.5]], dtype=torch.float64))
     plain = rasterize_depth(uv, z, model.faces, (64, 64))
     culled = rasterize_depth(uv, z, model.faces, (64, 64), cull_backfaces=True)
     fg = torch.isfinite(plain)
