@@ -130,6 +130,8 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
     calibrated for the network, see :func:`~facenormals.training.calibrate_landmark_threshold`).
     With ``mirror`` the prediction is averaged with that of the mirrored crops
     (:func:`~facenormals.nn.mirror_averaged`: better maps for twice the network time).
+    The network runs on its own device (e.g. CUDA); the maps come back on the CPU, where the fit
+    and the output files are made.
 
     Example:
         >>> net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
