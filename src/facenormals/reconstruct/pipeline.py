@@ -217,12 +217,10 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
         >>> tuple(inputs.landmarks.shape), inputs.intrinsics[0].tolist(), inputs.prealignment is None
         ((2, 24, 2), [300.0, 63.5, 63.5], True)
     """
-    check_shape(maps.normal_maps, ["V", 3, "S", "S"], "maps.normal_maps")
-    dims = check_shape(maps.landmarks, ["V", "C", 2], "maps.landmarks")
+    dims = check_shape(maps.normal_maps, ["V", 3, "S", "S"], "maps.normal_maps")
+    check_shape(maps.landmarks, ["V", "C", 2], "maps.landmarks", dims)
     check_shape(maps.found, ["V", "C"], "maps.found", dims)
-    V, S = maps.normal_maps.shape[0], maps.normal_maps.shape[-1]
-    if dims["V"] != V:
-        raise ValueError(f"maps.landmarks: expected {V} views as in maps.normal_maps, got {dims['V']}")
+    V, S = dims["V"], dims["S"]
     if not (math.isfinite(focal) and focal > 0):
         raise ValueError(f"focal: expected a positive focal length in pixels, got {focal}")
     channels = landmark_channels(model)
