@@ -121,7 +121,10 @@ class SyntheticHeadDataset(Dataset):
             normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
             segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
         except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error) as error:
-            self._archives.pop(shard, None)
+            archive = self._archives.pop(shard, None)
+            if archive is not None:
+                archive.close()
+            self._tables.pop(shard, None)
             raise ValueError(f"{self.root / shard_name(shard)}: corrupt shard, cannot read sample {i} "
                              f"({type(error).__name__}: {error}); delete the file and run `facenormals synth` "
                              "with the same arguments to write it again") from None
