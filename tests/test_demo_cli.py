@@ -1,3 +1,5 @@
+import json
+
 import pytest
 
 from facenormals.cli import main
@@ -84,3 +86,8 @@ def test_evaluate_command(tmp_path, capsys):
     for landmarks in (bad, tmp_path):
         assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(landmarks)]) == 1
         assert f"{landmarks}: expected a JSON object of landmark name -> vertex index" in capsys.readouterr().err
+    outside = tmp_path / "outside.json"
+    outside.write_text(json.dumps({**model.landmarks, "chin": 10**7}))
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(outside)]) == 1
+    assert f"{outside}: expected vertex indices in [0, {model.num_vertices}) of {pred}, got {{'chin': 10000000}}" \
+        in capsys.readouterr().err

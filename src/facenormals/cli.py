@@ -109,6 +109,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         except (OSError, ValueError, TypeError, AttributeError) as error:
             raise ValueError(f"{args.prediction_landmarks}: expected a JSON object of landmark name -> vertex index "
                              f"({type(error).__name__}: {error})") from None
+        outside = {name: index for name, index in pred_landmarks.items() if not 0 <= index < pred_v.shape[0]}
+        if outside:
+            raise ValueError(f"{args.prediction_landmarks}: expected vertex indices in [0, {pred_v.shape[0]}) of "
+                             f"{args.prediction}, got {outside}")
     elif pred_v.shape[0] == model.num_vertices:
         pred_landmarks = model.landmarks
     else:

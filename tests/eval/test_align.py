@@ -107,6 +107,9 @@ def test_differentiable():
         ({"weights": -torch.ones(1, 5)}, r"weights: expected non-negative"),
         ({"weights": torch.zeros(1, 5)}, r"weights: expected a positive sum"),
         ({"weights": torch.ones(1, 4)}, r"weights: expected shape \(B, N\) with N=5"),
+        ({"source": torch.ones(1, 5, 3)}, r"source, target: expected corresponding points that span a plane"),
+        ({"source": torch.arange(15.0).reshape(1, 5, 3)}, r"got degenerate points in problem\(s\) \[0\]"),
+        ({"weights": torch.tensor([[1.0, 1.0, 0.0, 0.0, 0.0]])}, r"span a plane"),
     ],
 )
 def test_bad_inputs(kwargs, match):
@@ -132,3 +135,12 @@ def test_apply_similarity_names_a_mismatched_dtype():
     points = torch.zeros(1, 4, 3, dtype=torch.float64)
     with pytest.raises(ValueError, match="rotation: expected dtype torch.float64"):
         apply_similarity(points, torch.ones(1, dtype=torch.float64), torch.eye(3)[None], torch.zeros(1, 3, dtype=torch.float64))
+
+
+def test_three_points_in_a_plane_are_enough():
+    source = torch.tensor([[[0.0, 0, 0], [10, 0, 0], [0, 5, 0]]], dtype=torch.float64)
+    R = torch.from_numpy(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix())[None]
+    target = 1.5 * source @ R.transpose(1, 2) + 2.0
+    s, R_fit, t = fit_similarity(source, target)
+    assert_close(s, torch.tensor([1.5], dtype=torch.float64))
+    assert_close(R_fit, R)

@@ -106,6 +106,7 @@ def test_rejection_of_distant_pairs(surface):
         ({"direction": "both"}, r"direction: expected one of"),
         ({"max_distance": -1.0}, r"max_distance: expected a positive number"),
         ({"max_iterations": 2.5}, r"max_iterations: expected a non-negative integer"),
+        ({"target_normals": torch.zeros(6, 3)}, r"target_normals: expected at least 6 non-zero normals to fit a rigid transform, got 0"),
     ],
 )
 def test_bad_inputs(kwargs, match):

@@ -85,6 +85,37 @@ def test_point_to_plane_uses_the_surface_not_the_vertices():
     errors = point_to_plane_errors(points, normals, vertices, faces)
     torch.testing.assert_close(errors, torch.tensor([-2.0, 4.0], dtype=torch.float64))
     assert point_to_plane_errors(points.float(), normals.float(), vertices, faces).dtype == torch.float32
+    # an oblique normal tells the surface (q = (10, 20, 0): -sqrt(2)) from the nearest vertex ((0, 0, 0): -8.49)
+    oblique = torch.tensor([[1.0, 0.0, -1.0]], dtype=torch.float64) / 2**0.5
+    torch.testing.assert_close(point_to_plane_errors(points[:1], oblique, vertices, faces),
+                               torch.tensor([-(2**0.5)], dtype=torch.float64))
+
+
+def test_point_to_plane_refuses_zero_normals():
+    vertices, faces = grid(n=3, size=100.0)
+    normals = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"reference_normals: expected non-zero normals, got 1 zero rows \(first at index 1\)"):
+        point_to_plane_errors(vertices[:2], normals, vertices, faces)
+
+
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        ({"points": np.zeros((4, 2))}, r"points: expected shape \(N, 3\), got \(4, 2\)"),
+        ({"points": np.full((4, 3), np.nan)}, r"points: expected finite values"),
+        ({"vertices": np.full((4, 3), np.inf)}, r"vertices: expected finite values"),
+        ({"faces": np.zeros((0, 3), np.int64)}, r"faces: expected shape \(F, 3\) with F >= 1, got \(0, 3\)"),
+        ({"faces": np.array([[0, 1, 4]])}, r"faces: expected vertex indices in \[0, 4\), got values in \[0, 4\]"),
+        ({"faces": np.array([[0, 1, -1]])}, r"faces: expected vertex indices in \[0, 4\), got values in \[-1, 1\]"),
+        ({"faces": np.array([[0.0, 1.0, 2.0]])}, r"faces: expected integer vertex indices"),
+    ],
+)
+def test_mesh_queries_check_their_inputs(change, match):
+    args = {"points": np.zeros((4, 3)), "vertices": np.eye(4, 3), "faces": np.array([[0, 1, 2]])}
+    args.update(change)
+    for query in (closest_points_on_mesh, intersect_lines_along_z):
+        with pytest.raises(ValueError, match=match):
+            query(args["points"], args["vertices"], args["faces"])
 
 
 def test_correspondence_errors():

@@ -6,7 +6,13 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from facenormals.eval import AlignmentResult, EvaluationReport, evaluate_reconstruction, summarise
+from facenormals.eval import (
+    DEFAULT_ALIGNMENT_LANDMARKS,
+    AlignmentResult,
+    EvaluationReport,
+    evaluate_reconstruction,
+    summarise,
+)
 from facenormals.models import builtin_head_model
 
 SIMILARITY_INVARIANT = ("point_to_plane_rmse", "correspondence_rmse", "depth_mean", "depth_std", "depth_median",
@@ -138,7 +144,12 @@ def test_report_dict_and_table(head):
         ({"correspondences": [[0, 1], [2, 3]]}, r"correspondences: expected at least 3 pairs"),
         ({"correspondences": [[0, 1], [2, 3], [4, 10**6]]}, r"correspondences: expected reference indices"),
         ({"correspondences": [[0.5, 1], [2, 3], [4, 5]]}, r"correspondences: expected integer index pairs"),
-        ({"correspondences": {"chin": 0}}, r"correspondences: expected landmark 'right_eye_outer'|source_landmarks"),
+        ({"correspondences": {"chin": 0}}, r"correspondences: source_landmarks: expected landmark 'right_eye_outer'"),
+        ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "chin": -1}},
+         r"correspondences: expected prediction landmark vertex indices \(column 0\) in \[0, \d+\), got values in \[-1,"),
+        ({"correspondences": ({n: 10**7 for n in DEFAULT_ALIGNMENT_LANDMARKS},
+                              {n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)})},
+         r"correspondences: expected prediction landmark vertex indices \(column 0\) in \[0, \d+\), got values in \[10000000"),
         ({"same_topology": True, "prediction_vertices": "extra"}, r"same_topology: True needs equal vertex counts"),
         ({"view_direction": torch.zeros(3)}, r"view_direction: expected a non-zero vector"),
     ],

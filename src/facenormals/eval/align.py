@@ -56,7 +56,7 @@ def fit_similarity(
 
     Raises:
         ValueError: on badly shaped, non-floating or non-finite inputs, fewer than 3 points,
-            or negative / all-zero weights.
+            negative / all-zero weights, or points (with positive weight) that do not span a plane.
 
     Shape:
         - source, target: :math:`(B, N, 3)`, :math:`N \ge 3`
@@ -100,6 +100,12 @@ def fit_similarity(
     yt = target - mu_t[:, None]
     cov = torch.einsum("bn,bni,bnj->bij", w, yt, xs)
     u, sing, vh = torch.linalg.svd(cov)
+    flat = sing[:, 1] <= 10 * torch.finfo(sing.dtype).eps * sing[:, 0]
+    if bool(flat.any()):
+        raise ValueError(
+            "source, target: expected corresponding points that span a plane (on one line or at one point the "
+            f"rotation is undetermined), got degenerate points in problem(s) {torch.nonzero(flat).flatten().tolist()}"
+        )
     sign = torch.sign(torch.det(u) * torch.det(vh))
     sign = torch.where(sign == 0, torch.ones_like(sign), sign)
     d = torch.stack([torch.ones_like(sign), torch.ones_like(sign), sign], dim=-1)

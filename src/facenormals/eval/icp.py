@@ -161,6 +161,9 @@ def icp_point_to_plane(
     nrm = nrm / np.maximum(length, 1e-12)[:, None]
     radius = float(np.sqrt(((tgt - tgt.mean(0)) ** 2).sum(1).mean())) or 1.0
     unknowns = 7 if scale else 6
+    if int(valid.sum()) < unknowns:
+        raise ValueError(f"target_normals: expected at least {unknowns} non-zero normals to fit "
+                         f"{'a similarity' if scale else 'a rigid'} transform, got {int(valid.sum())}")
     to_target = direction == "source_to_target"
     tree = cKDTree(tgt if to_target else src)
 

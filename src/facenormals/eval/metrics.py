@@ -85,7 +85,7 @@ def point_to_plane_errors(
         ``(N,)`` signed errors in mm, dtype and device of ``reference_vertices``.
 
     Raises:
-        ValueError: on bad shapes or dtypes, NaN/inf values, or out-of-range faces.
+        ValueError: on bad shapes or dtypes, NaN/inf values, zero normals, or out-of-range faces.
 
     Shape:
         - reference_vertices, reference_normals: :math:`(N, 3)`
@@ -103,7 +103,12 @@ def point_to_plane_errors(
     faces = _check_faces(reconstruction_faces, rdims["M"])
     p = _numpy(reference_vertices)
     n = _numpy(reference_normals)
-    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    zero = np.nonzero(length[:, 0] <= 1e-12)[0]
+    if len(zero):
+        raise ValueError(f"reference_normals: expected non-zero normals, got {len(zero)} zero rows "
+                         f"(first at index {int(zero[0])}): a vertex without a normal has no plane to score against")
+    n = n / length
     q, _, _ = closest_points_on_mesh(p, _numpy(reconstruction_vertices), faces)
     errors = ((q - p) * n).sum(1)
     return torch.from_numpy(errors).to(reference_vertices)

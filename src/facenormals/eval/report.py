@@ -157,6 +157,13 @@ def _landmarks_of(x: object) -> Mapping[str, int] | None:
     return landmarks if isinstance(landmarks, Mapping) else None
 
 
+def _named_pairs(prediction: Mapping[str, int], reference: Mapping[str, int], names: Sequence[str]) -> Tensor:
+    try:
+        return landmark_correspondences(prediction, reference, names)
+    except ValueError as error:  # name the argument the caller passed
+        raise ValueError(f"correspondences: {error}") from None
+
+
 def _resolve_pairs(
     correspondences: object,
     same_topology: bool,
@@ -181,21 +188,22 @@ def _resolve_pairs(
                 "correspondences: one landmark mapping needs meshes of the same topology; "
                 "pass (prediction_landmarks, reference_landmarks)"
             )
-        return landmark_correspondences(single, single, landmark_names)
-    if isinstance(correspondences, (tuple, list)) and len(correspondences) == 2:
-        both = [_landmarks_of(c) for c in correspondences]
-        if both[0] is not None and both[1] is not None:
-            return landmark_correspondences(both[0], both[1], landmark_names)
-    pairs = torch.as_tensor(correspondences)
-    check_shape(pairs, ["K", 2], "correspondences")
-    if pairs.dtype.is_floating_point or pairs.dtype == torch.bool:
-        raise ValueError(f"correspondences: expected integer index pairs, got dtype {pairs.dtype}")
-    pairs = pairs.long()
-    for column, size, what in ((0, num_prediction, "prediction"), (1, num_reference, "reference")):
+        pairs, what = _named_pairs(single, single, landmark_names), "landmark vertex indices"
+    elif (isinstance(correspondences, (tuple, list)) and len(correspondences) == 2
+          and all(_landmarks_of(c) is not None for c in correspondences)):
+        pairs = _named_pairs(_landmarks_of(correspondences[0]), _landmarks_of(correspondences[1]), landmark_names)
+        what = "landmark vertex indices"
+    else:
+        pairs = torch.as_tensor(correspondences)
+        check_shape(pairs, ["K", 2], "correspondences")
+        if pairs.dtype.is_floating_point or pairs.dtype == torch.bool:
+            raise ValueError(f"correspondences: expected integer index pairs, got dtype {pairs.dtype}")
+        pairs, what = pairs.long(), "indices"
+    for column, size, mesh in ((0, num_prediction, "prediction"), (1, num_reference, "reference")):
         col = pairs[:, column]
         if col.numel() and (int(col.min()) < 0 or int(col.max()) >= size):
             raise ValueError(
-                f"correspondences: expected {what} indices (column {column}) in [0, {size}), "
+                f"correspondences: expected {mesh} {what} (column {column}) in [0, {size}), "
                 f"got values in [{int(col.min())}, {int(col.max())}]"
             )
     return pairs

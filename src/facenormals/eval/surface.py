@@ -19,6 +19,30 @@ import numpy as np
 __all__ = ["closest_points_on_mesh", "closest_points_on_triangles", "intersect_lines_along_z"]
 
 
+def _check_query(points: object, vertices: object, faces: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Queries ``(Q, 3)``, vertices ``(N, 3)`` (finite, as float64) and triangles ``(F, 3)``, F >= 1, indexing them."""
+    arrays = {}
+    for name, value in (("points", points), ("vertices", vertices)):
+        x = np.asarray(value)
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise ValueError(f"{name}: expected shape (N, 3), got {tuple(x.shape)}")
+        if not np.issubdtype(x.dtype, np.number) or np.iscomplexobj(x):
+            raise ValueError(f"{name}: expected real numbers, got dtype {x.dtype}")
+        x = x.astype(np.float64, copy=False)
+        if not np.isfinite(x).all():
+            raise ValueError(f"{name}: expected finite values, got NaN or infinite entries")
+        arrays[name] = x
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+        raise ValueError(f"faces: expected shape (F, 3) with F >= 1, got {tuple(f.shape)}")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces: expected integer vertex indices, got dtype {f.dtype}")
+    n = len(arrays["vertices"])
+    if int(f.min()) < 0 or int(f.max()) >= n:
+        raise ValueError(f"faces: expected vertex indices in [0, {n}), got values in [{int(f.min())}, {int(f.max())}]")
+    return arrays["points"], arrays["vertices"], f
+
+
 def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Closest point to ``p[i]`` on triangle ``(a[i], b[i], c[i])`` (all ``(K, 3)``), Ericson §5.1.5.
 
@@ -96,6 +120,10 @@ def closest_points_on_mesh(
     Returns:
         ``(closest (Q, 3), distance (Q,), triangle (Q,))``.
 
+    Raises:
+        ValueError: naming ``points``, ``vertices`` or ``faces`` when one is badly shaped, not finite,
+            or (faces) not integer indices of the vertices.
+
     Example:
         >>> v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
         >>> queries = np.array([[0.5, 0.5, 2.0], [2.0, 2.0, 0.0]])
@@ -106,8 +134,8 @@ def closest_points_on_mesh(
     """
     from scipy.spatial import cKDTree
 
-    points = np.asarray(points, dtype=np.float64)
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    points, vertices, faces = _check_query(points, vertices, faces)
+    tri = vertices[faces]
     centroid = tri.mean(axis=1)
     radius = np.sqrt(((tri - centroid[:, None]) ** 2).sum(-1)).max(axis=1)
     num_q, num_f = len(points), len(tri)
@@ -174,8 +202,8 @@ def intersect_lines_along_z(
         >>> intersect_lines_along_z(np.array([[0.25, 0.5, 0.0], [3.0, 3.0, 0.0]]), v, np.array([[0, 1, 2]]))
         array([5.5, nan])
     """
-    points = np.asarray(points, dtype=np.float64)
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    points, vertices, faces = _check_query(points, vertices, faces)
+    tri = vertices[faces]
     xy = tri[..., :2]
     lo, hi = xy.min(axis=1), xy.max(axis=1)
     num_q = len(points)
