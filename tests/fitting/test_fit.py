@@ -121,6 +121,35 @@ def test_bad_input(model, head):
     bad_focal[..., 0] = 0.0
     with pytest.raises(ValueError, match="intrinsics: expected focal lengths f > 0"):
         fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=bad_focal)
+    with pytest.raises(ValueError, match=r"vertex_spacing: expected a spacing, a non-empty sequence"):
+        fit_head(obs.normal_maps, obs.landmarks, model, vertex_spacing=[])
+    with pytest.raises(ValueError, match="fit_expression: model 'builtin' has no expression basis"):
+        fit_head(obs.normal_maps, obs.landmarks, model, fit_expression=True)
+    nan_angles = obs.angles.clone()
+    nan_angles[..., 0] = float("nan")
+    with pytest.raises(ValueError, match="initial_pose angles: expected finite values"):
+        fit_head(obs.normal_maps, obs.landmarks, model, initial_pose=(nan_angles, obs.translation))
+    with pytest.raises(ValueError, match=r"FitWeights.focal_std: expected a finite number > 0, got 0"):
+        fit_head(obs.normal_maps, obs.landmarks, model, weights=FitWeights(focal_std=0))
+
+
+def test_reported_energies_are_the_weighted_terms(model, head):
+    """With plain least squares over every visible vertex, the energies are λ times the paper's terms."""
+    obs = render_oracle_views(model, head, [10.0], image_size=64)
+    weights = FitWeights(normals=1.0, landmarks=0.8, prior=0.4)
+    fit = fit_head(obs.normal_maps, obs.landmarks + 0.5, model, weights=weights, robust_scale=None,
+                   landmark_robust_scale=None, vertex_spacing=None, fit_intrinsics=False, rounds=2)
+    prior = 0.5 * 0.4 * (fit.shape_coeffs / model.shape_std).square().sum(1)
+    torch.testing.assert_close(fit.energies["prior"], prior)
+    count = obs.landmark_mask.sum()
+    landmarks = 0.5 * 0.8 * fit.landmark_rms_px.square().sum(1) * count  # rms over all (visible) landmarks
+    torch.testing.assert_close(fit.energies["landmarks"], landmarks, rtol=1e-4, atol=1e-6)
+    assert set(fit.energies) == {"normals", "landmarks", "prior"}
+    assert float(fit.energies["normals"]) > 0
+    halved = fit_head(obs.normal_maps, obs.landmarks + 0.5, model, weights=FitWeights(normals=0.5, landmarks=0.8,
+                      prior=0.4), robust_scale=None, landmark_robust_scale=None, vertex_spacing=None,
+                      fit_intrinsics=False, initial_pose=(fit.angles, fit.translation), rounds=1, iterations_per_round=1)
+    assert float(halved.energies["normals"]) < float(fit.energies["normals"])
 
 
 def test_vertex_spacing_options(model, head):

@@ -163,3 +163,21 @@ def test_yaw_starts_must_not_be_empty():
     uv, _, _, K = observe(model, 0.0)
     with pytest.raises(ValueError, match="yaw_starts_deg: expected at least one"):
         prealign_pose(uv, model.mean[model.landmark_indices], K, init="multistart", yaw_starts_deg=[])
+
+
+def test_focal_length_must_be_positive():
+    model = builtin_head_model(dtype=torch.float64)
+    uv, _, _, K = observe(model, 0.0)
+    for focal in (0.0, -100.0):  # -100 used to converge to a 180-degree roll
+        bad = K.clone()
+        bad[:, 0] = focal
+        with pytest.raises(ValueError, match=rf"intrinsics: expected focal lengths f > 0, got {focal:g}"):
+            prealign_pose(uv, model.mean[model.landmark_indices], bad)
+
+
+def test_pose_jacobian_checks_the_mask():
+    points, x, K = torch.zeros(2, 4, 3), torch.tensor([[0.0, 0, 0, 0, 0, 500]] * 2), torch.tensor([[500.0, 64, 64]] * 2)
+    with pytest.raises(ValueError, match=r"mask: expected shape \(B, L\) \(2 dimensions\), got \(4,\)"):
+        landmark_pose_jacobian(points, x, K, torch.ones(4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="mask: expected a bool tensor, got dtype torch.int64"):
+        landmark_pose_jacobian(points, x, K, torch.full((2, 4), 3))

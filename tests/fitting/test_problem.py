@@ -114,3 +114,46 @@ def test_per_subject_vertex_subsets():
         assert int(problem.vis_valid[b].sum()) == int((full.vis_valid[b] & subsets[b][full.vis_index[b]]).sum())
     with pytest.raises(ValueError, match=r"vertex_subset: expected a bool tensor of shape \(N,\) or \(B, N\)"):
         two_subject_problem(vertex_subset=subsets[:1])
+
+
+@pytest.mark.parametrize(
+    "field,value,match",
+    [("normals", -1.0, r"FitWeights.normals: expected a finite number >= 0, got -1.0"),
+     ("prior", float("nan"), r"FitWeights.prior: expected a finite number >= 0"),
+     ("landmarks", "a", r"FitWeights.landmarks: expected a finite number >= 0, got 'a'"),
+     ("center_std", 0.0, r"FitWeights.center_std: expected a finite number > 0, got 0.0")],
+)
+def test_fit_weights_check_their_values(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        FitWeights(**{field: value})
+    assert FitWeights(normals=0.0).normals == 0.0  # landmarks only is allowed
+
+
+def test_problem_checks_its_inputs():
+    model = small_model()
+    obs = render_oracle_views(model, model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(2)), [0.0],
+                              image_size=32)
+    args = [obs.normal_maps, obs.landmarks, obs.landmark_mask, obs.intrinsics]
+    cases = [
+        (0, obs.normal_maps[0], r"normal_maps: expected shape \(B, V, 3, H, W\) \(5 dimensions\), got \(1, 3, 32, 32\)"),
+        (1, obs.landmarks[..., :-1, :], r"landmarks: expected shape \(B, V, 24, 2\).*got \(1, 1, 23, 2\)"),
+        (2, obs.landmark_mask.float(), r"landmark_mask: expected a bool tensor"),
+        (3, obs.intrinsics[0], r"intrinsics_prior: expected shape \(B, V, 3\).*got \(1, 3\)"),
+    ]
+    for position, value, match in cases:
+        bad = list(args)
+        bad[position] = value
+        with pytest.raises(ValueError, match=match):
+            HeadFitProblem(model, *bad)
+    with pytest.raises(ValueError, match=r"view_weights: expected finite values >= 0"):
+        HeadFitProblem(model, *args, view_weights=-torch.ones(1, 1))
+    with pytest.raises(ValueError, match=r"vertex_subset: expected a bool tensor of shape \(N,\) or \(B, N\)"):
+        HeadFitProblem(model, *args, vertex_subset=torch.ones(5, dtype=torch.bool))
+
+
+def test_huber_scale_is_in_units_of_the_normals_whatever_the_view_weight():
+    problem, x = two_subject_problem()
+    reference = problem.update_robust_weights(x, 0.1).clone()
+    heavy, _ = two_subject_problem(view_weights=torch.full((2, 2), 4.0, dtype=torch.float64))
+    torch.testing.assert_close(heavy.update_robust_weights(x, 0.1), reference)
+    assert float(reference[problem.vis_valid.bool()].min()) < 1.0  # some vertices are down-weighted at all

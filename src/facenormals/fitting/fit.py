@@ -16,7 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape, check_tensor
+from facenormals.core.check import check_finite, check_shape, check_tensor
 from facenormals.fitting.pose import prealign_pose
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
@@ -47,8 +47,11 @@ class FitResult:
         landmark_median_px: ``(B, V)`` median reprojection error: not moved by the few spurious
             landmarks that the Cauchy weights ignore.
 
-    ``energies["landmarks"]`` is the landmark term as minimised in the last round, i.e. with the
-    Cauchy weights of that round's start.
+    ``energies`` are the terms as minimised in the last round: ``energies["normals"]`` is λN·EN
+    over that round's vertices (its grid subset, visible and facing the camera by ``min_facing``)
+    with its Huber weights, ``energies["landmarks"]`` is λZ·EZ with its Cauchy weights, and
+    ``energies["prior"]`` is λP·EP. With ``robust_scale=None``, ``landmark_robust_scale=None`` and
+    ``vertex_spacing=None`` they are the paper's weighted terms over the visible vertices.
     """
 
     vertices: Tensor
@@ -189,8 +192,9 @@ def fit_head(
         A :class:`FitResult`.
 
     Raises:
-        ValueError: on bad shapes, NaN normal maps, or a view with fewer than 4 visible landmarks
-            (the message names the view).
+        ValueError: on bad shapes, NaN normal maps or initial pose, ``fit_expression`` with a model
+            without expressions, or a view with fewer than 4 visible landmarks (the message names
+            the view).
     """
     import time
 
@@ -200,6 +204,10 @@ def fit_head(
                          f"{rounds}, {iterations_per_round}, {visibility_rounds}")
     check_scale("robust_scale", robust_scale)
     check_scale("landmark_robust_scale", landmark_robust_scale)
+    if isinstance(vertex_spacing, Sequence) and len(vertex_spacing) == 0:
+        raise ValueError("vertex_spacing: expected a spacing, a non-empty sequence of spacings or None, got []")
+    if fit_expression and model.num_expressions == 0:
+        raise ValueError(f"fit_expression: model {model.name!r} has no expression basis to fit")
     normal_maps = _as_views(normal_maps, "normal_maps", [3, "H", "W"])
     B, V, _, H, W = normal_maps.shape
     views = {"B": B, "V": V}
@@ -238,6 +246,8 @@ def fit_head(
         pre_rms = pose.rms_px.reshape(B, V)
     else:
         angles, translation = (_as_views(p, n, [3], views).to(dtype) for p, n in zip(initial_pose, ("angles", "translation")))
+        check_finite(angles, "initial_pose angles")
+        check_finite(translation, "initial_pose translation")
         pre_rms = torch.full((B, V), float("nan"), dtype=dtype, device=device)
     t_pre = time.perf_counter()
 

@@ -43,7 +43,8 @@ class PoseEstimate:
         rotation: ``(B, 3, 3)``.
         cost: ``(B,)`` final :math:`E_Z` (px²).
         rms_px: ``(B,)`` root-mean-square landmark error in pixels.
-        status: ``(B,)`` :class:`~facenormals.optim.LMStatus` of the best start.
+        status: ``(B,)`` :class:`~facenormals.optim.LMStatus` of the last solve of each view: the best
+            start's, or that of the last Cauchy-reweighted solve with ``robust_scale``.
     """
 
     angles: Tensor
@@ -73,6 +74,10 @@ def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: 
     dims = check_shape(points, ["B", "L", 3], "points")
     check_shape(x, ["B", 6], "x", dims)
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    if mask is not None:
+        check_shape(mask, ["B", "L"], "mask", dims)
+        if mask.dtype != torch.bool:
+            raise ValueError(f"mask: expected a bool tensor, got dtype {mask.dtype}")
     R = euler_to_rotation_matrix(x[:, :3])
     D = euler_rotation_derivatives(x[:, :3])  # (B, 3, 3, 3)
     q = points + x[:, None, 3:]
@@ -193,6 +198,8 @@ def prealign_pose(
     check_shape(model_points, ["B", "L", 3], "model_points", dims)
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_finite(intrinsics, "intrinsics")
+    if not bool((intrinsics[:, 0] > 0).all()):
+        raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")
     check_finite(model_points, "model_points")
     if mask is None:
         mask = torch.isfinite(landmarks).all(-1)

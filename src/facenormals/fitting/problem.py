@@ -28,6 +28,8 @@ normal rows are one sparse (CSR) product with the basis rows :math:`W`.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import torch
@@ -35,6 +37,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
+from facenormals.core.check import check_shape
 from facenormals.energy import landmark_residuals, prior_residuals
 from facenormals.energy.residuals import _foreground as map_foreground
 from facenormals.fitting.rings import RingRows, Rings
@@ -74,6 +77,18 @@ class FitWeights:
     expression_prior: float = 1.0
     focal_std: float = 0.2
     center_std: float = 4.0
+
+    def __post_init__(self) -> None:
+        for name, positive in (("normals", False), ("landmarks", False), ("prior", False),
+                               ("expression_prior", False), ("focal_std", True), ("center_std", True)):
+            value = getattr(self, name)
+            try:
+                number = float(value)
+            except (TypeError, ValueError):
+                number = float("nan")
+            if not (math.isfinite(number) and (number > 0 if positive else number >= 0)):
+                raise ValueError(f"FitWeights.{name}: expected a finite number {'> 0' if positive else '>= 0'}, "
+                                 f"got {value!r}")
 
 
 @dataclass
@@ -124,9 +139,20 @@ class HeadFitProblem:
         view_weights: Tensor | None = None,
         vertex_subset: Tensor | None = None,
     ) -> None:
+        dims = check_shape(normal_maps, ["B", "V", 3, "H", "W"], "normal_maps")
+        views = {"B": dims["B"], "V": dims["V"]}
+        check_shape(landmarks, ["B", "V", model.landmark_indices.shape[0], 2], "landmarks", views)
+        check_shape(landmark_mask, ["B", "V", model.landmark_indices.shape[0]], "landmark_mask", views)
+        if landmark_mask.dtype != torch.bool:
+            raise ValueError(f"landmark_mask: expected a bool tensor, got dtype {landmark_mask.dtype}")
+        check_shape(intrinsics_prior, ["B", "V", 3], "intrinsics_prior", views)
+        if view_weights is not None:
+            check_shape(view_weights, ["B", "V"], "view_weights", views)
+            if not bool((torch.isfinite(view_weights) & (view_weights >= 0)).all()):
+                raise ValueError("view_weights: expected finite values >= 0")
         self.model = model
-        self.B, self.V = normal_maps.shape[:2]
-        self.H, self.W = normal_maps.shape[-2:]
+        self.B, self.V = dims["B"], dims["V"]
+        self.H, self.W = dims["H"], dims["W"]
         self.N = model.num_vertices
         self.K = model.num_shape
         self.E = model.num_expressions if fit_expression else 0
@@ -305,7 +331,9 @@ class HeadFitProblem:
         self.vertex_weights = torch.ones_like(self.vertex_weights)
         self.landmark_weights = torch.ones_like(self.landmark_weights)
         if scale is not None and self.weights.normals > 0:
-            r_n = self.residual_terms(x)[0] / self.weights.normals**0.5  # (B, V, S, 3), unweighted
+            # (B, V, S, 3) without λN and the view weights, so that δ is in units of the normals
+            scale_out = (self.weights.normals * self.view_weights).sqrt()
+            r_n = self.residual_terms(x)[0] / torch.where(scale_out > 0, scale_out, 1.0)[..., None, None]
             self.vertex_weights = huber_weights(r_n.norm(dim=-1), scale)
         if landmark_scale is not None:
             error = self.landmark_errors(x).nan_to_num(0.0)
