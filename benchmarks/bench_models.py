@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import argparse
 import platform
 import statistics
 import time
@@ -27,6 +28,7 @@ def median_ms(fn, repeats: int = 20, warmup: int = 3) -> float:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     print(f"machine: {platform.machine()}, torch {torch.__version__} ({torch.get_num_threads()} threads)")
     rows = []
     archive = find_ict_archive()
