@@ -8,7 +8,7 @@ and score the face region (95 mm around the nose tip) after rigid and after simi
 - single view, |yaw| <= 30 deg,
 - three views at 0 and +-45 deg.
 
-    python benchmarks/accuracy_oracle.py --heads 50 --out docs/accuracy.md
+    python benchmarks/accuracy_oracle.py --heads 50 [--out TABLE.md]
 """
 
 from __future__ import annotations
