@@ -78,3 +78,8 @@ def test_bad_input_names_the_argument():
         mirror_averaged(net, torch.rand(3, 16, 16))
     with pytest.raises(ValueError, match="images"):
         mirror_averaged(net, torch.zeros(1, 3, 16, 16, dtype=torch.uint8))
+    n = torch.nn.functional.normalize(torch.randn(1, 3, 4, 5), dim=1)
+    with pytest.raises(ValueError, match=r"output.landmarks: expected shape \(B, 2, H, W\) with H=4 .*got \(1, 2, 6, 7\)"):
+        mirror_output(UNetOutput(n, torch.rand(1, 2, 6, 7), torch.randn(1, 1, 4, 5)), [1, 0])
+    with pytest.raises(ValueError, match=r"output.foreground_logits: expected shape \(B, 1, H, W\) with B=1 .*got \(2, 1, 4, 5\)"):
+        mirror_output(UNetOutput(n, torch.rand(1, 2, 4, 5), torch.randn(2, 1, 4, 5)), [1, 0])

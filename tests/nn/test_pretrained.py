@@ -52,6 +52,16 @@ def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
     torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "state_dict": net.state_dict()}, path)
     with pytest.raises(ValueError, match="w.pt: the weight file lacks its architecture"):
         load_weights(path)
+    good = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION,
+            "architecture": {"base_channels": 4, "depth": 2, "num_landmarks": 24}, "state_dict": net.state_dict(),
+            "metadata": {}}
+    for change, match in (({"state_dict": {**net.state_dict(), "extra": "text"}}, "state_dict holds entries that are not tensors"),
+                          ({"metadata": ["a", "b"]}, "metadata is not a dictionary"),
+                          ({"architecture": {"base_channels": 4, "depth": 0, "num_landmarks": 24}},
+                           "architecture .* is not a valid network")):
+        torch.save({**good, **change}, path)
+        with pytest.raises(ValueError, match=f"w.pt: the weight file's {match}"):
+            load_weights(path)
 
 
 def test_update_weight_metadata_keeps_the_weights(tmp_path):

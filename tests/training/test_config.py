@@ -17,7 +17,9 @@ def test_learning_rate_schedule_warmup_then_cosine():
 
 
 @pytest.mark.parametrize("field,value", [("steps", 0), ("batch_size", -1), ("lr", 0.0), ("ema_decay", 1.0),
-                                         ("precision", "fp8"), ("workers", -1), ("max_minutes", 0.0)])
+                                         ("precision", "fp8"), ("workers", -1), ("max_minutes", 0.0),
+                                         ("lr", float("inf")), ("sigma", float("nan")), ("workers", True),
+                                         ("threads", 1.5), ("threads", True), ("landmark_weight", float("inf"))])
 def test_bad_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         TrainConfig(data="d", out="o", **{field: value})

@@ -1,11 +1,14 @@
-"""DDP on CPU (Gloo): two processes train one model; their weights stay identical."""
+"""DDP on CPU (Gloo): two processes train one model (their weights stay identical) and stop together."""
 
 import os
 import socket
+import time
 
+import pytest
 import torch
 import torch.multiprocessing as mp
 
+from facenormals.nn import NormalLandmarkUNet
 from facenormals.training import TrainConfig, load_checkpoint, train
 from facenormals.training.distributed import init_distributed
 
@@ -18,29 +21,62 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _worker(rank: int, world: int, port: int, out: str, results) -> None:
+def _worker(rank: int, world: int, port: int, out: str, results, max_minutes: dict) -> None:
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
+    from facenormals.training import loop
+
+    built = []
+
+    def recording_unet(*args, **kwargs):  # keep this rank's network to compare the ranks' weights
+        built.append(NormalLandmarkUNet(*args, **kwargs))
+        return built[-1]
+
+    loop.NormalLandmarkUNet = recording_unet
     config = TrainConfig(data="unused", out=out, steps=3, batch_size=2, workers=0, device="cpu", precision="fp32",
-                         log_every=1, checkpoint_every=3, base_channels=4, depth=2)
+                         log_every=1, checkpoint_every=3, base_channels=4, depth=2, max_minutes=max_minutes.get(rank))
     summary = train(config, TinyHeads(16), progress=False)
-    results[rank] = (summary.samples_seen, [p.detach().clone() for p in _last_params(out)] if rank == 0 else None)
+    results[rank] = (summary.samples_seen, summary.step, summary.stopped_by,
+                     [p.detach().clone() for p in built[0].parameters()])
 
 
-def _last_params(out: str):
-    return list(load_checkpoint(os.path.join(out, "last.pt"))["model"].values())
+def _run(world: int, out: str, max_minutes: dict | None = None, timeout: float = 240.0) -> dict:
+    with mp.Manager() as manager:
+        results = manager.dict()
+        context = mp.spawn(_worker, args=(world, _free_port(), out, results, max_minutes or {}), nprocs=world,
+                           join=False)
+        deadline = time.monotonic() + timeout
+        while not context.join(timeout=5):
+            if time.monotonic() > deadline:  # a rank waiting for another forever
+                for process in context.processes:
+                    process.kill()
+                pytest.fail(f"the {world} DDP processes did not finish within {timeout:.0f} s")
+        return dict(results)
 
 
 def test_two_process_ddp_on_cpu(tmp_path):
-    world, port = 2, _free_port()
-    with mp.Manager() as manager:
-        results = manager.dict()
-        mp.spawn(_worker, args=(world, port, str(tmp_path / "run"), results), nprocs=world, join=True)
-        seen = {rank: results[rank][0] for rank in range(world)}
-    assert seen == {0: 12, 1: 12}  # 3 steps x 2 images x 2 processes
+    results = _run(2, str(tmp_path / "run"))
+    assert {rank: r[0] for rank, r in results.items()} == {0: 12, 1: 12}  # 3 steps x 2 images x 2 processes
+    for a, b in zip(results[0][3], results[1][3]):  # one model: the ranks' weights are identical
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert any(not torch.equal(a, b) for a, b in zip(results[0][3], _initial_params()))  # and they did train
     state = load_checkpoint(tmp_path / "run" / "last.pt")
     assert state["world_size"] == 2 and state["samples_seen"] == 12
+    torch.testing.assert_close(list(state["model"].values()), results[0][3], rtol=0, atol=0)
+
+
+def test_a_stop_on_one_rank_stops_every_rank(tmp_path):
+    """Rank 1 reaches its time limit at once; rank 0 has none. Both stop at the same step and rank 0
+    still writes the checkpoint (before, rank 0 waited for rank 1 in the next all-reduce)."""
+    results = _run(2, str(tmp_path / "run"), max_minutes={1: 1e-9})
+    assert {rank: r[1:3] for rank, r in results.items()} == {0: (0, "max_minutes"), 1: (0, "max_minutes")}
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 0
+
+
+def _initial_params():
+    torch.manual_seed(0)  # TrainConfig's default seed, as train() seeds it before building the network
+    return list(NormalLandmarkUNet(base_channels=4, depth=2).parameters())
 
 
 def test_a_bare_cuda_device_names_this_process_gpu(monkeypatch):

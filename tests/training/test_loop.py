@@ -150,3 +150,54 @@ def test_dataloader_workers_ignore_stop_signals():
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+def test_resume_applies_a_changed_weight_decay(tmp_path, monkeypatch):
+    data = TinyHeads(8)
+    train(_config(tmp_path, steps=2), data, progress=False)
+    seen = []
+    original = torch.optim.AdamW.step
+
+    def record(self, *args, **kwargs):
+        seen.append(self.param_groups[0]["weight_decay"])
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", record)
+    train(_config(tmp_path, steps=4, weight_decay=0.5), data, progress=False)
+    assert seen == [0.5, 0.5]  # the optimiser state alone would restore 1e-4
+
+
+def test_rerunning_a_finished_run_writes_nothing(tmp_path):
+    data = TinyHeads(8)
+    config = _config(tmp_path, steps=2, eval_every=100)
+    train(config, data, holdout=TinyHeads(4, seed=1), progress=False)
+    run = tmp_path / "run"
+    before = {name: (run / name).read_bytes() for name in ("last.pt", "log.csv", "eval.csv")}
+    summary = train(config, data, holdout=TinyHeads(4, seed=1), progress=False)
+    assert summary.finished and summary.step == 2
+    assert {name: (run / name).read_bytes() for name in before} == before  # no second eval row, no rewrite
+
+
+def test_a_failed_log_rewrite_keeps_the_log(tmp_path, monkeypatch):
+    from facenormals.training.loop import _truncate_csv
+
+    log = tmp_path / "log.csv"
+    log.write_text("step,loss\n" + "".join(f"{s},{s / 10}\n" for s in range(1, 11)))
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(csv.DictWriter, "writerows", fail)
+    with pytest.raises(OSError, match="disk full"):
+        _truncate_csv(log, 5)
+    assert len(log.read_text().splitlines()) == 11  # untouched
+    monkeypatch.undo()
+    _truncate_csv(log, 5)
+    assert [int(r["step"]) for r in csv.DictReader(log.open())] == [1, 2, 3, 4, 5]
+
+
+def test_export_refuses_to_overwrite_its_checkpoint(tmp_path):
+    summary = train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
+    with pytest.raises(ValueError, match="out: .*last.pt is the checkpoint being exported"):
+        export_weights(summary.checkpoint, summary.checkpoint)
+    assert load_checkpoint(summary.checkpoint)["step"] == 1

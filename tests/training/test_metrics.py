@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from facenormals.data import landmark_maps
-from facenormals.nn import UNetOutput
+from facenormals.nn import NormalLandmarkUNet, UNetOutput
 from facenormals.training import calibrate_landmark_threshold, evaluate_network, landmark_threshold, normal_angles
 
 from .conftest import TinyHeads
@@ -119,3 +119,21 @@ def test_posed_visibility_needs_the_network_landmarks():
     model.landmark_names = ["ear_canal"] + list(model.landmark_names[1:])
     with pytest.raises(ValueError, match=r"model: landmarks \['ear_canal'\]"):
         evaluate_network(Cheat(data), data, mirror=False, model=model)
+
+
+def test_evaluate_network_runs_where_asked_and_checks_thresholds():
+    data = TinyHeads(4)
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    moved = []
+    original = net.to
+
+    def to(*args, **kwargs):
+        moved.append(args[0] if args else kwargs.get("device"))
+        return original(*args, **kwargs)
+
+    net.to = to
+    evaluate_network(net, data, mirror=False, device="cpu")
+    assert [torch.device(d) for d in moved] == [torch.device("cpu"), torch.device("cpu")]  # there and back
+    with pytest.raises(ValueError, match=r"threshold: expected one value or one per landmark channel \(24\), "
+                                         r"got shape \(5,\)"):
+        evaluate_network(net, data, mirror=False, threshold=[0.5] * 5)

@@ -58,8 +58,9 @@ def mirror_output(output: UNetOutput, permutation: Sequence[int]) -> UNetOutput:
         >>> all(torch.equal(a, b) for a, b in zip(twice, out))
         True
     """
-    check_shape(output.normals, ["B", 3, "H", "W"], "output.normals")
-    check_shape(output.landmarks, ["B", len(permutation), "H", "W"], "output.landmarks")
+    dims = check_shape(output.normals, ["B", 3, "H", "W"], "output.normals")
+    check_shape(output.landmarks, ["B", len(permutation), "H", "W"], "output.landmarks", dims)
+    check_shape(output.foreground_logits, ["B", 1, "H", "W"], "output.foreground_logits", dims)
     if sorted(int(i) for i in permutation) != list(range(len(permutation))):
         raise ValueError(f"permutation: expected a permutation of 0..{len(permutation) - 1}, got {list(permutation)}")
     sign = torch.tensor([-1.0, 1.0, 1.0], dtype=output.normals.dtype, device=output.normals.device).view(1, 3, 1, 1)

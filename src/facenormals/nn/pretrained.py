@@ -48,6 +48,10 @@ def _read_payload(path: Path) -> dict:
             or not isinstance(state, dict)):
         raise ValueError(f"{path}: the weight file lacks its architecture (num_landmarks, base_channels, depth) "
                          "or its state_dict")
+    if not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ValueError(f"{path}: the weight file's state_dict holds entries that are not tensors")
+    if not isinstance(payload.get("metadata", {}), dict):
+        raise ValueError(f"{path}: the weight file's metadata is not a dictionary")
     return payload
 
 
@@ -98,8 +102,11 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     path = pretrained_weights_path() if path is None else Path(path)
     payload = _read_payload(path)
     arch = payload["architecture"]
-    net = NormalLandmarkUNet(num_landmarks=int(arch["num_landmarks"]), base_channels=int(arch["base_channels"]),
-                             depth=int(arch["depth"]))
+    try:
+        net = NormalLandmarkUNet(num_landmarks=int(arch["num_landmarks"]), base_channels=int(arch["base_channels"]),
+                                 depth=int(arch["depth"]))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: the weight file's architecture {arch} is not a valid network ({error})") from None
     state = {k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
     try:
         net.load_state_dict(state)

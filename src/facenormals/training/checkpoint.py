@@ -64,7 +64,13 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
 
     Returns:
         ``out``.
+
+    Raises:
+        ValueError: when ``out`` is ``checkpoint`` itself (the training state would be lost).
     """
+    if Path(out).resolve() == Path(checkpoint).resolve():
+        raise ValueError(f"out: {out} is the checkpoint being exported; writing the weights over it would lose "
+                         "the training state, choose another file")
     state = load_checkpoint(checkpoint)
     weights = state["ema" if use_ema else "model"]
     tensors = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in weights.items()}

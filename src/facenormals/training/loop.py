@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import csv
 import math
+import os
 import signal
 import time
 from dataclasses import dataclass
@@ -100,11 +101,13 @@ def _truncate_csv(path: Path, step: int) -> None:
     with path.open(newline="") as handle:
         rows = list(csv.DictReader(handle))
     kept = [r for r in rows if int(r["step"]) <= step]
-    if len(kept) != len(rows):
-        with path.open("w", newline="") as handle:
+    if len(kept) != len(rows):  # rewritten beside and renamed over it: an error leaves the old log
+        tmp = path.with_name(path.name + ".tmp")
+        with tmp.open("w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(kept)
+        os.replace(tmp, path)
 
 
 def _ignore_stop_signals(_worker_id: int) -> None:
@@ -181,6 +184,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         net.load_state_dict(state["model"])
         ema.load_state_dict(state["ema"])
         optimizer.load_state_dict(state["optimizer"])
+        for group in optimizer.param_groups:  # the optimiser state restores the old setting; the config wins
+            group["weight_decay"] = config.weight_decay
         step, samples_seen = int(state["step"]), int(state["samples_seen"])
         if ctx.is_main:
             for name in ("log.csv", "eval.csv"):
@@ -233,15 +238,10 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     metrics: NetworkMetrics | None = None
     running: dict[str, float] = {}
     window_steps = 0  # steps summed in ``running`` (fewer than log_every in the first window of a resumed run)
+    already_finished = step >= config.steps  # a rerun of a finished run writes nothing
     try:
         batches = iter(loader)
         while step < config.steps:
-            if stop_signal:
-                stopped_by = "signal"
-                break
-            if config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes:
-                stopped_by = "max_minutes"
-                break
             batch = next(batches)
             torch.manual_seed((config.seed * 1_000_003 + step) * ctx.world_size + ctx.rank)  # resumable augmentation
             images = augment(batch["image"].to(ctx.device, non_blocking=True))
@@ -258,9 +258,18 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             loss, terms = normal_landmark_loss(_float_outputs(prediction), normals, maps, foreground,
                                                config.landmark_weight, config.foreground_weight,
                                                config.landmark_peak_weight)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"step {step}: the loss is {float(loss)}; lower --lr "
-                                         f"or resume from the last checkpoint {last}")
+            # Stop or fail on every rank together (a rank left alone would wait in the next all-reduce).
+            timed_out = config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes
+            flags = torch.tensor([bool(stop_signal), timed_out, not bool(torch.isfinite(loss.detach()))],
+                                 dtype=torch.int32, device=ctx.device)
+            if ctx.distributed:
+                torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
+            if flags[2]:
+                raise FloatingPointError(f"step {step}: the loss is not finite on some rank ({float(loss)} here); "
+                                         f"lower --lr or resume from the last checkpoint {last}")
+            if flags[0] or flags[1]:
+                stopped_by = "signal" if flags[0] else "max_minutes"
+                break
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -278,6 +287,11 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 running[key] = running.get(key, 0.0) + float(value.detach())
             if step % config.log_every == 0 or step == config.steps:
                 now = time.perf_counter()
+                if ctx.distributed:  # the losses of the whole global batch, not rank 0's share
+                    keys = sorted(running)
+                    sums = torch.tensor([running[k] for k in keys], dtype=torch.float64, device=ctx.device)
+                    torch.distributed.all_reduce(sums)
+                    running = dict(zip(keys, (sums / ctx.world_size).tolist()))
                 row = {k: v / window_steps for k, v in running.items()}
                 row.update(step=step, epoch=samples_seen / len(dataset), samples_seen=samples_seen, lr=lr,
                            images_per_s=window_images / max(now - window_start, 1e-9),
@@ -295,9 +309,10 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 metrics = evaluate(config.eval_samples)
                 if metrics is not None and bar is not None:
                     bar.write(f"step {step}: {metrics}")
-        checkpoint()
-        if step >= config.steps:
-            metrics = evaluate(None)
+        if not already_finished:
+            checkpoint()
+            if step >= config.steps:
+                metrics = evaluate(None)
     finally:
         if bar is not None:
             bar.close()

@@ -116,37 +116,44 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
     if len(dataset) == 0:
         raise ValueError("dataset: expected at least one sample, got none")
-    device = next(net.parameters()).device if device is None else torch.device(device)
+    home = next(net.parameters()).device
+    device = home if device is None else torch.device(device)
     threshold = torch.as_tensor(threshold, dtype=torch.float32, device=device)
+    channels_out = getattr(net, "num_landmarks", None)
+    if threshold.dim() > 1 or (threshold.dim() == 1 and channels_out is not None and threshold.numel() != channels_out):
+        raise ValueError(f"threshold: expected one value or one per landmark channel ({channels_out}), "
+                         f"got shape {tuple(threshold.shape)}")
     was_training = net.training
-    net.eval()
-    angles, errors = [], []
-    agree = agree_posed = total = 0
-    inter = union = 0
-    for batch in DataLoader(dataset, batch_size=batch_size, num_workers=workers):
-        image = batch["image"].to(device)
-        out = mirror_averaged(net, image) if mirror else net(image)
-        fg = batch["foreground"].to(device)
-        angles.append(normal_angles(out.normals, batch["normals"].to(device), fg).cpu())
-        maps = out.landmarks.float()
-        peaks, _ = landmarks_from_maps(maps, threshold=float("-inf"))  # every peak, detected or not
-        found = maps.flatten(2).amax(-1) > threshold
-        visible = batch["landmark_visible"].to(device)
-        err = (peaks - batch["landmarks"].to(device)).norm(dim=-1)
-        errors.append(err[visible].cpu())
-        agree += int((found == visible).sum())
-        total += visible.numel()
-        if channels is not None:
-            size = maps.shape[-2:]
-            K = torch.tensor([focal, (size[1] - 1) / 2, (size[0] - 1) / 2]).expand(len(image), 3)
-            posed = found.clone().cpu()
-            posed[:, channels], _ = drop_hidden_landmarks(peaks[:, channels].cpu(), posed[:, channels], model, K,
-                                                          tuple(size))
-            agree_posed += int((posed == visible.cpu()).sum())
-        pred_fg = out.foreground()
-        inter += int((pred_fg & fg).sum())
-        union += int((pred_fg | fg).sum())
-    net.train(was_training)
+    net.to(device).eval()
+    try:
+        angles, errors = [], []
+        agree = agree_posed = total = 0
+        inter = union = 0
+        for batch in DataLoader(dataset, batch_size=batch_size, num_workers=workers):
+            image = batch["image"].to(device)
+            out = mirror_averaged(net, image) if mirror else net(image)
+            fg = batch["foreground"].to(device)
+            angles.append(normal_angles(out.normals, batch["normals"].to(device), fg).cpu())
+            maps = out.landmarks.float()
+            peaks, _ = landmarks_from_maps(maps, threshold=float("-inf"))  # every peak, detected or not
+            found = maps.flatten(2).amax(-1) > threshold
+            visible = batch["landmark_visible"].to(device)
+            err = (peaks - batch["landmarks"].to(device)).norm(dim=-1)
+            errors.append(err[visible].cpu())
+            agree += int((found == visible).sum())
+            total += visible.numel()
+            if channels is not None:
+                size = maps.shape[-2:]
+                K = torch.tensor([focal, (size[1] - 1) / 2, (size[0] - 1) / 2]).expand(len(image), 3)
+                posed = found.clone().cpu()
+                posed[:, channels], _ = drop_hidden_landmarks(peaks[:, channels].cpu(), posed[:, channels], model, K,
+                                                              tuple(size))
+                agree_posed += int((posed == visible.cpu()).sum())
+            pred_fg = out.foreground()
+            inter += int((pred_fg & fg).sum())
+            union += int((pred_fg | fg).sum())
+    finally:
+        net.train(was_training).to(home)
     angles_t, errors_t = torch.cat(angles), torch.cat(errors)
 
     def stat(x: Tensor, fn) -> float:
