@@ -208,3 +208,73 @@ def test_worker_start_errors_reach_the_caller(tmp_path, monkeypatch):
     monkeypatch.setattr("facenormals.data.gl_platform.select_gl_platform", no_gl)
     with pytest.raises(HeadlessGLError, match="libegl1"):
         write_dataset(tmp_path / "x", 2, workers=2, model_spec="builtin", progress=False)
+
+
+def test_a_shard_missing_its_tables_is_regenerated(dataset_root, tmp_path):
+    import shutil
+    import zipfile
+
+    from facenormals.data.shards import shard_is_complete, shard_range
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    with zipfile.ZipFile(dataset_root / "shard_00000.npz") as old, \
+            zipfile.ZipFile(root / "shard_00000.npz", "w") as new:  # everything but the landmarks table
+        for item in old.infolist():
+            if item.filename != "landmarks.npy":
+                new.writestr(item, old.read(item.filename))
+    assert not shard_is_complete(root / "shard_00000.npz", shard_range(0, 10, 4))
+    assert _write(root).shards_written == 1
+
+
+def test_another_model_with_the_same_sizes_is_refused(dataset_root, tmp_path):
+    """The manifest records the model's content, not only its sizes and names."""
+    import shutil
+
+    from facenormals.models import builtin_head_model
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    model = builtin_head_model()
+    other = type(model)(model.mean, 3.0 * model.shape_basis, model.faces, shape_std=model.shape_std,
+                        landmarks=model.landmarks, face_region=model.face_region, name="builtin")
+    other_path = tmp_path / "other.npz"
+    other.save(other_path)
+    with pytest.raises(ValueError, match="another model"):
+        write_dataset(root, 10, seed=1, model_spec=str(other_path), shard_size=4, config=CONFIG, progress=False)
+
+
+def test_shards_without_a_manifest_are_refused(dataset_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    os.remove(root / "manifest.json")
+    with pytest.raises(ValueError, match="holds shards but no manifest.json"):
+        _write(root, seed=2)
+
+
+def test_a_stale_shard_is_named_as_such(dataset_root, tmp_path):
+    """After a count change on one rank, another rank's shard still holds the old samples."""
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest["count"] = 11  # shard 2 should now hold samples 8..10
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    dataset = SyntheticHeadDataset(root)
+    assert len(dataset) == 11 and int(dataset[0]["index"]) == 0
+    with pytest.raises(ValueError, match=r"shard_00002.npz: stale shard, holds samples 8..9 but the manifest's "
+                                         r"count 11 asks for 8..10"):
+        dataset[8]
+
+
+def test_a_bad_model_or_rank_writes_nothing(tmp_path):
+    from facenormals.models import ModelFileError
+
+    with pytest.raises(ModelFileError, match="missing.npz"):
+        write_dataset(tmp_path / "s", 1, model_spec=str(tmp_path / "missing.npz"), progress=False)
+    assert not (tmp_path / "s").exists()
+    with pytest.raises(ValueError, match="rank: expected 0 <= rank < world_size"):
+        write_dataset(tmp_path / "s", 1, model_spec="builtin", rank=0.5, world_size=2, progress=False)

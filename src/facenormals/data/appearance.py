@@ -165,8 +165,9 @@ def sample_lighting(rng: np.random.Generator, num_lights: tuple[int, int] = (1, 
     """Ambient light plus 1–3 directional lights with random directions, intensities and colour temperatures.
 
     Directions are in the camera frame (x right, y down, z forward) and point from the subject to the
-    light; the key light comes from the camera's side of the subject, fill lights from anywhere
-    in front, slightly favouring above.
+    light; the key light comes from the camera's side of the subject (97 % of draws; else a rim
+    light from behind), each fill light from the camera's side in 80 % of draws and from behind
+    otherwise, all slightly favouring above.
     """
     count = int(rng.integers(num_lights[0], num_lights[1] + 1))
     directions, colors = [], []

@@ -16,7 +16,7 @@ __all__ = ["PhotoLibrary", "random_background"]
 
 #: Bundled ``skimage.data`` images used as photo backgrounds (no faces; skipped when missing).
 SKIMAGE_IMAGES = (
-    "chelsea", "coffee", "rocket", "horse", "camera", "coins", "moon", "text", "page", "brick", "grass",
+    "chelsea", "coffee", "rocket", "horse", "coins", "moon", "text", "page", "brick", "grass",
     "gravel", "hubble_deep_field", "immunohistochemistry", "retina", "colorwheel", "logo", "motorcycle_left",
     "clock", "cell", "binary_blobs",
 )  # fmt: skip

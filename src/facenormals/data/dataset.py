@@ -18,6 +18,10 @@ from facenormals.data.shards import SHARD_ARRAYS, read_manifest, read_member, sh
 __all__ = ["SyntheticHeadDataset"]
 
 
+class _StaleShard(ValueError):
+    """A readable shard written for another sample count (another rank has not rewritten it yet)."""
+
+
 class SyntheticHeadDataset(Dataset):
     r"""Training samples from a synthetic dataset folder; safe in ``DataLoader`` worker processes.
 
@@ -103,6 +107,14 @@ class SyntheticHeadDataset(Dataset):
             archive = zipfile.ZipFile(self.root / shard_name(shard))
             self._archives[shard] = archive
             self._tables[shard] = {name: read_member(archive, name) for name in SHARD_ARRAYS}
+            expected = shard_range(shard, self.count, self.shard_size)
+            index = self._tables[shard]["index"]
+            if not np.array_equal(index, np.arange(expected.start, expected.stop)):
+                self.close()
+                raise _StaleShard(f"{self.root / shard_name(shard)}: stale shard, holds samples "
+                                  f"{int(index[0]) if len(index) else '-'}..{int(index[-1]) if len(index) else '-'} but "
+                                  f"the manifest's count {self.count} asks for {expected.start}..{expected.stop - 1}; "
+                                  "run `facenormals synth` for this folder on every rank to finish it")
         return self._archives[shard], self._tables[shard]
 
     def close(self) -> None:
@@ -120,6 +132,8 @@ class SyntheticHeadDataset(Dataset):
             image = torch.from_numpy(read_member(archive, f"image/{i:04d}")).permute(2, 0, 1).float() / 255.0
             normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
             segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
+        except _StaleShard:
+            raise
         except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error) as error:
             archive = self._archives.pop(shard, None)
             if archive is not None:

@@ -329,7 +329,7 @@ class SyntheticHeadGenerator:
     def _expressions(self, rng: np.random.Generator) -> np.ndarray:
         count = self.model.num_expressions
         weights = np.zeros(count, dtype=np.float64)
-        if count == 0 or rng.random() >= self.config.expression_probability:
+        if count == 0 or self.config.max_expressions == 0 or rng.random() >= self.config.expression_probability:
             return weights.astype(np.float32)
         k = int(rng.integers(1, max(1, self.config.max_expressions) + 1))
         chosen = rng.choice(count, size=min(k, count), replace=False)
@@ -354,7 +354,7 @@ class SyntheticHeadGenerator:
         v0 = center_px + rng.uniform(-1.0, 1.0) * cfg.principal_jitter * scale
         fill = rng.uniform(*cfg.fill)
         target = fill * size
-        head = vertices[self.assets.framing][::4].astype(np.float64)
+        head = vertices[self.assets.framing].astype(np.float64)  # every vertex: a subset let heads leave the frame
         middle = 0.5 * (head.min(0) + head.max(0))
         posed = (head - middle) @ rotation.T  # camera-frame offsets from the head's middle
         extent = float(np.max(posed[:, :2].max(0) - posed[:, :2].min(0)))
@@ -467,7 +467,8 @@ class SyntheticHeadGenerator:
     def _visibility(self, pixels: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, zbuffer: np.ndarray,
                     labels: np.ndarray) -> np.ndarray:
         """Landmarks inside the image that nothing hides: their nearest pixel shows the head surface
-        at their depth, or nothing at all (a landmark on the outline, e.g. the nose tip in profile).
+        at their depth, or something behind them or nothing at all (a landmark on the outline, e.g.
+        the nose tip in profile, over the background, or over hair or clothing farther away).
 
         The depth slack is the larger of 3 mm and the lateral size of two pixels at the landmark's
         depth, which absorbs the surface slope between the landmark and the pixel centre.
@@ -482,7 +483,8 @@ class SyntheticHeadGenerator:
         b = np.arange(len(pixels))[:, None]
         surface = zbuffer[b, vi, ui]
         label = labels[b, vi, ui]
-        unhidden = np.isin(label, HEAD_LABELS) | (label == LABELS["background"])  # background: depth inf
+        # hair, headwear, occluders and clothing hide a landmark only in front of it (background: depth inf)
+        unhidden = np.isin(label, HEAD_LABELS) | (surface > depth)
         slack = np.maximum(3.0, 2.0 * depth / intrinsics[:, None, 0])
         return inside & unhidden & (depth <= surface + slack)
 

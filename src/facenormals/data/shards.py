@@ -22,6 +22,7 @@ finished; :func:`write_dataset` skips those (resume), and may extend a dataset t
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import multiprocessing
@@ -139,7 +140,8 @@ def shard_is_complete(path: Path, indices: range) -> bool:
         return False
     if not np.array_equal(index, np.arange(indices.start, indices.stop)):
         return False
-    return all(f"{field}/{i:04d}.npy" in names for field in SAMPLE_ARRAYS for i in range(len(indices)))
+    return (all(f"{name}.npy" in names for name in SHARD_ARRAYS)
+            and all(f"{field}/{i:04d}.npy" in names for field in SAMPLE_ARRAYS for i in range(len(indices))))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -205,8 +207,13 @@ class _Progress:
 
 
 def _model_fingerprint(model) -> dict:
+    digest = hashlib.sha256()
+    for array in (model.mean, model.shape_basis, model.shape_std, model.expression_basis, model.faces):
+        if array is not None:
+            digest.update(np.ascontiguousarray(array.detach().cpu().numpy()).tobytes())
     return {
         "name": model.name,
+        "content_sha256": digest.hexdigest(),
         "num_vertices": model.num_vertices,
         "num_shape": model.num_shape,
         "num_expressions": model.num_expressions,
@@ -277,7 +284,7 @@ def write_dataset(
     rank = int(os.environ.get("RANK", 0)) if rank is None else rank
     world_size = int(os.environ.get("WORLD_SIZE", 1)) if world_size is None else world_size
     world_size = _check_positive(world_size, "world_size")
-    if not 0 <= int(rank) < world_size:
+    if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)) or not 0 <= int(rank) < world_size:
         raise ValueError(f"rank: expected 0 <= rank < world_size = {world_size}, got {rank}")
     config = config if config is not None else SynthConfig()
     if not isinstance(config, SynthConfig):
@@ -290,8 +297,8 @@ def write_dataset(
     root = Path(out_dir)
     if root.exists() and not root.is_dir():
         raise ValueError(f"out_dir: {root} exists and is not a folder")
+    model = load_model(model_spec)  # before the folder exists: a bad model path leaves nothing behind
     root.mkdir(parents=True, exist_ok=True)
-    model = load_model(model_spec)
     manifest = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
@@ -306,8 +313,13 @@ def write_dataset(
         "labels": _labels(),
     }
     path = root / MANIFEST
+    if not path.is_file() and any(root.glob("shard_*.npz")):
+        raise ValueError(f"{root}: holds shards but no {MANIFEST}, so their seed and model are unknown; "
+                         "use another folder, or delete the shards to start afresh")
     if path.is_file():
         existing = read_manifest(root)
+        if "content_sha256" not in existing.get("model", {}):  # written before the model's content was recorded
+            manifest["model"] = {k: v for k, v in manifest["model"].items() if k != "content_sha256"}
         for key in ("seed", "shard_size", "image_size", "model", "config"):
             if existing.get(key) != manifest[key]:
                 raise ValueError(
