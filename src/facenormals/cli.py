@@ -245,7 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--weights", default=None, help="network weights (default: the shipped ones)")
     rec.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     rec.add_argument("--box", action="append", type=_parse_box, metavar="X,Y,W,H",
-                     help="face box per image, in image order, instead of detecting it (e.g. for profile views)")
+                     help="face box per image, in image order, instead of detecting it (e.g. for profile views); "
+                          "write a box with a negative X as --box=-20,30,150,150")
     rec.set_defaults(func=_cmd_reconstruct)
 
     train = sub.add_parser("train", help="train the normal + landmark network on synthetic data (resumes from OUT/last.pt)",

@@ -77,3 +77,9 @@ def test_crop_square_maps_a_dot_to_the_documented_pixel():
     s = 4.0
     assert (u + 0.5) * s - 0.5 + view_box[0] == pytest.approx(121.5, abs=s / 2 + 1e-9)
     assert (v + 0.5) * s - 0.5 + view_box[1] == pytest.approx(201.5, abs=s / 2 + 1e-9)
+
+
+def test_slivers_have_no_face_and_do_not_crash():
+    for shape in ((3, 5000), (5000, 3), (1, 2000), (30, 4000)):  # the downscale used to round a side to 0
+        assert detect_faces(np.full(shape, 128, np.uint8)) == []
+

@@ -54,3 +54,18 @@ def test_errors_name_the_file(tmp_path):
             read_image(tmp_path / name)
     with pytest.raises(ImageReadError, match="not a file"):
         read_image(tmp_path)
+
+
+def test_a_header_claiming_too_many_pixels_names_the_file(tmp_path):
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", 100_000, 100_000, 8, 2, 0, 0, 0)  # 10^10 RGB pixels
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\x00")) + chunk(b"IEND", b"")
+    path = tmp_path / "huge.png"
+    path.write_bytes(png)
+    with pytest.raises(ImageReadError, match=r"huge.png: (cannot be decoded|not an image)"):
+        read_image(path)

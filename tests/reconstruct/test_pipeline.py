@@ -1,5 +1,6 @@
 """The product recipe with an oracle "network" (exact maps), and the command line's error handling."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -184,6 +185,30 @@ def test_write_reconstruction_files_and_params(oracle, tmp_path):
     assert not list(tmp_path.glob(".*tmp*"))
 
 
+def test_a_rewrite_is_all_or_nothing_and_drops_stale_views(oracle, tmp_path):
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
+    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                                  mirror=False)
+    view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300),
+                     path="photo.jpg")
+    rec = Reconstruction([view], maps, fit, model)
+    for name in ("view1_overlay.png", "view1_normals.png", "view1_landmarks.png", "view1_notes.png"):
+        (tmp_path / name).write_bytes(b"an earlier run with two photos")
+    write_reconstruction(rec, tmp_path)
+    assert not (tmp_path / "view1_overlay.png").exists() and not (tmp_path / "view1_landmarks.png").exists()
+    assert (tmp_path / "view1_notes.png").exists()  # not one of ours: kept
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    (tmp_path / "params.json").unlink()
+    (tmp_path / "params.json").mkdir()  # the last file cannot be written: nothing may change
+    moved = fit.vertices.clone()
+    rec.fit = dataclasses.replace(fit, vertices=moved + 1.0)
+    with pytest.raises(OSError, match="params.json: is a folder"):
+        write_reconstruction(rec, tmp_path)
+    assert (tmp_path / "head.ply").read_bytes() == before["head.ply"]
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
 def test_photo_view_maps_crop_pixels_to_image_pixels():
     view = PhotoView(crop=np.zeros((128, 128, 3), np.uint8), box=(10.0, 20.0, 64.0))
     out = view.to_image(torch.tensor([[0.0, 0.0], [127.0, 127.0]]))
@@ -346,3 +371,31 @@ def test_the_example_photo_with_the_builtin_head_stays_frontal():
     assert mine.mean.dtype == torch.float64 and rec.model.mean.dtype == torch.float32
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 2]))) < 20.0
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 1]))) < 25.0
+
+
+def test_bad_device_names_the_argument(tmp_path):
+    from facenormals.reconstruct import reconstruct_photos
+
+    for device in ("foo", "mps", "cuda:x"):
+        with pytest.raises(ValueError, match=rf"device: expected 'cpu', 'cuda' or 'cuda:N', got '{device}'"):
+            reconstruct_photos([tmp_path / "a.jpg"], None, model="builtin", device=device, log=lambda *a: None)
+
+
+def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(monkeypatch):
+    from facenormals.reconstruct import pipeline, photos
+
+    def fake_predict(net, crops, mirror=True):  # a bright crop is a face with every landmark
+        found = (crops.mean(dim=(1, 2, 3)) > 0.5)[:, None].expand(-1, len(LANDMARK_NAMES))
+        return pipeline.NetworkMaps(torch.zeros(len(crops), 3, 128, 128), torch.zeros(len(crops), 24, 128, 128),
+                                    torch.zeros(len(crops), 24, 2), found.clone(), seconds=0.0)
+
+    monkeypatch.setattr(pipeline, "predict_maps", fake_predict)
+    dark, bright = np.zeros((128, 128, 3), np.uint8), np.full((128, 128, 3), 255, np.uint8)
+    stray = PhotoView(crop=dark, box=(0.0, 0.0, 50.0), path="group.jpg")
+    stray.alternatives = [PhotoView(crop=bright, box=(10.0, 20.0, 60.0), path="group.jpg")]
+    single = PhotoView(crop=dark, box=(0.0, 0.0, 50.0), path="alone.jpg")  # one face: kept as it is
+    messages = []
+    picked = photos._pick_faces([stray, single], None, builtin_head_model(), False, messages.append)
+    assert picked[0] is stray.alternatives[0] and picked[1] is single
+    assert messages == ["group.jpg: too few landmarks in the first detected face; using the next one, head crop "
+                        "60 px at (10, 20)"]

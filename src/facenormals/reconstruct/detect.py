@@ -97,15 +97,18 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
-    scale = min(1.0, max_side / max(grey.shape))
-    if scale < 1.0:
-        grey = cv2.resize(grey, (round(grey.shape[1] * scale), round(grey.shape[0] * scale)),
-                          interpolation=cv2.INTER_AREA)
+    height, width = grey.shape
+    if max_side < max(height, width):
+        size = (max(1, round(width * max_side / max(height, width))), max(1, round(height * max_side / max(height, width))))
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    scale_x, scale_y = grey.shape[1] / width, grey.shape[0] / height  # the real ratios after rounding
     side = min(grey.shape)
     smallest = max(24, int(min_face * side))
+    if side < smallest:  # a sliver: no face of the detector's smallest size fits
+        return []
     raw = _cascade().detect_multi_scale(img=grey, scale_factor=1.15, step_ratio=1,
                                         min_size=(smallest, smallest), max_size=(side, side))
-    hits = [FaceBox(d["c"] / scale, d["r"] / scale, d["width"] / scale, d["height"] / scale) for d in raw]
+    hits = [FaceBox(d["c"] / scale_x, d["r"] / scale_y, d["width"] / scale_x, d["height"] / scale_y) for d in raw]
     return [b for b in _group(hits, 0.3) if b.hits >= min_hits]
 
 

@@ -40,7 +40,10 @@ def read_image(path: str | Path) -> np.ndarray:
         data = np.fromfile(path, dtype=np.uint8)  # also works for non-ASCII paths, unlike cv2.imread
     except OSError as error:
         raise ImageReadError(f"{path}: cannot be read ({error.strerror or error})") from None
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    except cv2.error as error:  # e.g. a header claiming more pixels than OpenCV accepts
+        raise ImageReadError(f"{path}: cannot be decoded ({str(error).strip().splitlines()[-1]})") from None
     if image is None:
-        raise ImageReadError(f"{path}: not an image (OpenCV cannot decode it)")
+        raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
     return np.ascontiguousarray(image[:, :, ::-1])

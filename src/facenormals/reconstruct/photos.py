@@ -22,8 +22,11 @@ if TYPE_CHECKING:
 __all__ = ["prepare_view", "reconstruct_photos"]
 
 
-def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None = None, size: int = 128) -> PhotoView:
+def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None = None, size: int = 128,
+                 max_alternatives: int = 2) -> PhotoView:
     """Read a photo, find the face (or use ``box = (x, y, w, h)``) and crop the head to ``size``².
+
+    The detector's next ``max_alternatives`` faces, if any, come along as ``view.alternatives``.
 
     Raises:
         ImageReadError: the file is missing or not an image.
@@ -35,8 +38,9 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
         if not faces:
             raise NoFaceError(f"{path}: no face found (the detector finds roughly frontal faces; "
                               "for a profile view pass its face box with --box X,Y,W,H)")
-        face = faces[0]
+        face, others = faces[0], faces[1 : 1 + max_alternatives]
     else:
+        others = []
         x, y, w, h = (float(v) for v in box)
         H, W = image.shape[:2]
         if not all(math.isfinite(v) for v in (x, y, w, h)) or not (w > 0 and h > 0):
@@ -45,8 +49,31 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
             raise ValueError(f"{path}: face box {box} does not frame a face in the {W}x{H} image (it must overlap "
                              "the image and be at most 4 times its size)")
         face = FaceBox(x, y, w, h)
-    crop_box = head_crop_box(face)
-    return PhotoView(crop=crop_square(image, crop_box, size), box=crop_box, image_size=image.shape[:2], path=str(path))
+    views = [PhotoView(crop=crop_square(image, b, size), box=b, image_size=image.shape[:2], path=str(path))
+             for b in (head_crop_box(f) for f in (face, *others))]
+    views[0].alternatives = views[1:]
+    return views[0]
+
+
+def _pick_faces(views: list[PhotoView], net, model, mirror: bool, log: Callable[[str], None]) -> list[PhotoView]:
+    """For a photo with several detected faces, the first whose crop shows the network enough (>= 4)
+    of ``model``'s landmarks (a stray detection can rank first); photos with one face are kept."""
+    from facenormals.reconstruct.pipeline import landmark_channels, predict_maps
+
+    channels = landmark_channels(model)
+    picked = []
+    for view in views:
+        choice = view
+        for candidate in ([view, *view.alternatives] if view.alternatives else []):
+            crop = torch.from_numpy(candidate.crop).permute(2, 0, 1)[None].float() / 255.0
+            if int(predict_maps(net, crop, mirror=mirror).found[0, channels].sum()) >= 4:
+                choice = candidate
+                break
+        if choice is not view:
+            log(f"{view.path}: too few landmarks in the first detected face; using the next one, head crop "
+                f"{choice.box[2]:.0f} px at ({choice.box[0]:.0f}, {choice.box[1]:.0f})")
+        picked.append(choice)
+    return picked
 
 
 def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
@@ -79,6 +106,12 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
 
     if not paths:
         raise ValueError("paths: expected at least one image, got none")
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, TypeError):
+        kind = None
+    if kind not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {device!r}")
     if str(device).startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"device: {device!r} requested but this torch build ({torch.__version__}) has no CUDA "
                          "device; use --device cpu")
@@ -112,6 +145,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         f"network on {device}")
 
     t = time.perf_counter()
+    views = _pick_faces(views, net, model, mirror, log)
     crops = torch.from_numpy(np.stack([v.crop for v in views])).permute(0, 3, 1, 2).float() / 255.0
     if fit_weights is not None:
         fit_options["weights"] = fit_weights

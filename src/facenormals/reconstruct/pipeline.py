@@ -15,6 +15,8 @@ import dataclasses
 import json
 import math
 import os
+import re
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,12 +89,15 @@ class PhotoView:
         box: ``(x0, y0, side)`` of the crop in the photo's pixels (see :func:`crop_square`).
         image_size: ``(H, W)`` of the photo (after EXIF rotation).
         path: where the photo came from, if a file.
+        alternatives: crops of the detector's other faces in the photo, best first (tried when the
+            network finds too few landmarks in this one).
     """
 
     crop: np.ndarray
     box: tuple[float, float, float] = (0.0, 0.0, 128.0)
     image_size: tuple[int, int] = (128, 128)
     path: str | None = None
+    alternatives: list["PhotoView"] = field(default_factory=list)
 
     def to_image(self, pixels: Tensor) -> Tensor:
         """Crop pixels ``(..., 2)`` to photo pixels."""
@@ -309,25 +314,42 @@ class Reconstruction:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _write_atomic(path: Path, write: Callable[[Path], object]) -> Path:
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+class _Staged:
+    """Files written under unique temporary names in their folder, renamed into place together by
+    :meth:`commit`: a failure before it (an error, a full disk, Ctrl-C) leaves every earlier file as
+    it was, and two runs into one folder never rename each other's half-written files."""
 
+    def __init__(self) -> None:
+        self.files: list[tuple[Path, Path]] = []
 
-def _write_png(path: Path, rgb: np.ndarray) -> Path:
-    import cv2
+    def write(self, path: Path, write: Callable[[Path], object]) -> Path:
+        if path.is_dir():  # found now, not when renaming after other files were replaced
+            raise OSError(f"{path}: is a folder, cannot write the file there")
+        handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(handle)
+        self.files.append((Path(name), path))
+        write(Path(name))
+        return path
 
-    def write(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
-            raise OSError(f"{path}: cannot write the PNG")
+    def png(self, path: Path, rgb: np.ndarray) -> Path:
+        import cv2
 
-    return _write_atomic(path, write)
+        def write(tmp: Path) -> None:
+            if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
+                raise OSError(f"{path}: cannot write the PNG")
+
+        return self.write(path, write)
+
+    def commit(self) -> list[Path]:
+        for tmp, path in self.files:
+            os.replace(tmp, path)
+        done, self.files = [path for _, path in self.files], []
+        return done
+
+    def discard(self) -> None:
+        for tmp, _ in self.files:
+            tmp.unlink(missing_ok=True)
+        self.files = []
 
 
 def landmark_map_image(crop: np.ndarray, landmark_maps: Tensor, scale: int = 4) -> np.ndarray:
@@ -350,21 +372,35 @@ def _wrap_degrees(radians: float) -> float:
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]:
     """Write ``head.ply``, ``head.obj``, ``params.json`` and per view an overlay, N and Z pictures.
 
-    Every file is written to a temporary name and renamed, so an interrupted run never leaves a
-    half-written file and never destroys an earlier complete one.
+    Every file is written to a unique temporary name first and all are renamed into place together
+    once all are written, so an interrupted or failed run never leaves a half-written file nor a mix
+    of old and new files; view pictures of an earlier run with more photos are removed.
     """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    staged = _Staged()
+    try:
+        _stage_reconstruction(rec, out, staged)
+        written = staged.commit()
+    finally:
+        staged.discard()
+    # an earlier run with more photos left views this one does not have: they would not match params.json
+    for stale in out.glob("view*_*.png"):
+        match = re.fullmatch(r"view(\d+)_(overlay|normals|landmarks)\.png", stale.name)
+        if match and int(match.group(1)) >= len(rec.views):
+            stale.unlink(missing_ok=True)
+    return written
+
+
+def _stage_reconstruction(rec: Reconstruction, out: Path, staged: _Staged) -> None:
     from facenormals.mesh import save_mesh
     from facenormals.render import draw_alignment, normal_map_to_image
 
     import cv2
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     fit, maps = rec.fit, rec.maps
-    written = [
-        _write_atomic(out / "head.ply", lambda p: save_mesh(p, fit.vertices[0], fit.faces)),
-        _write_atomic(out / "head.obj", lambda p: save_mesh(p, fit.vertices[0], fit.faces)),
-    ]
+    staged.write(out / "head.ply", lambda p: save_mesh(p, fit.vertices[0], fit.faces))
+    staged.write(out / "head.obj", lambda p: save_mesh(p, fit.vertices[0], fit.faces))
     R = euler_to_rotation_matrix(fit.angles[0])
     pixels, _ = project_points(fit.vertices.expand(R.shape[0], -1, -1), R, fit.translation[0], fit.intrinsics[0])
     views_json = []
@@ -373,11 +409,9 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
         overlay = draw_alignment(view.crop, pixels[v], maps.landmarks[v], visible=fit.visible[0, v])
         normals = cv2.resize(normal_map_to_image(maps.normal_maps[v]), overlay.shape[1::-1],
                              interpolation=cv2.INTER_NEAREST)
-        written += [
-            _write_png(out / f"{stem}_overlay.png", overlay),
-            _write_png(out / f"{stem}_normals.png", normals),
-            _write_png(out / f"{stem}_landmarks.png", landmark_map_image(view.crop, maps.landmark_maps[v])),
-        ]
+        staged.png(out / f"{stem}_overlay.png", overlay)
+        staged.png(out / f"{stem}_normals.png", normals)
+        staged.png(out / f"{stem}_landmarks.png", landmark_map_image(view.crop, maps.landmark_maps[v]))
         f, u0, v0 = fit.intrinsics[0, v].tolist()
         x0, y0, side = view.box
         s = side / view.crop.shape[0]
@@ -408,5 +442,4 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
         "status": fit.reasons[0] if fit.reasons else None,
         "timings_s": rec.timings,
     }
-    written.append(_write_atomic(out / "params.json", lambda p: p.write_text(json.dumps(params, indent=2))))
-    return written
+    staged.write(out / "params.json", lambda p: p.write_text(json.dumps(params, indent=2)))
