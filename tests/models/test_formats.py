@@ -249,6 +249,9 @@ def test_bfm2009_truncation_and_v73(tmp_path):
         "tl": reversed_one_based(CCW_FACES),
     })
     check_model(load_bfm2009(v73), STD_MM)
+    from facenormals.models import load_model
+
+    check_model(load_model(v73), STD_MM)  # a v7.3 BFM file is not sent to the LYHM loader
 
 
 @pytest.mark.parametrize("compress", [False, True], ids=["plain", "compressed"])

@@ -249,9 +249,9 @@ def test_fetch_without_network_names_from(tmp_path, monkeypatch):
 
 
 class _FakeResponse(io.BytesIO):
-    def __init__(self, payload: bytes, length: int | None = None) -> None:
+    def __init__(self, payload: bytes, length: int | None = None, send_length: bool = True) -> None:
         super().__init__(payload)
-        self.headers = {"Content-Length": str(len(payload) if length is None else length)}
+        self.headers = {"Content-Length": str(len(payload) if length is None else length)} if send_length else {}
 
 
 def _repo_zip(folder: Path) -> bytes:
@@ -303,3 +303,32 @@ def test_fetch_from_bad_source_leaves_no_archive(raw_copy, tmp_path):
     with pytest.raises(ModelFileError, match=r"jawOpen\.obj"):
         fetch_ict(raw_copy, cache=tmp_path / "cache", progress=None)
     assert not (tmp_path / "cache" / "ict" / "ict_face_head.npz").exists()
+
+
+def test_an_inconsistent_archive_names_the_file_and_its_face_count_is_used(ict_npz, tmp_path):
+    from facenormals.models import ModelFileError, load_ict_npz
+
+    with np.load(ict_npz) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["identity_basis"] = arrays["identity_basis"][:2]  # small copies
+    arrays["expression_basis"] = arrays["expression_basis"][:1]
+    arrays["expression_names"] = arrays["expression_names"][:1]
+    np.savez(tmp_path / "few.npz", **{**arrays, "landmarks_ibug68": arrays["landmarks_ibug68"][:10]})
+    with pytest.raises(ModelFileError, match="few.npz: inconsistent ICT-FaceKit archive"):
+        load_ict_npz(tmp_path / "few.npz")
+    np.savez(tmp_path / "count.npz", **{**arrays, "face_vertex_count": np.array(100)})
+    assert int(load_ict_npz(tmp_path / "count.npz").face_region[100:].sum()) == 0
+    for bad in (True, 2.5, 0):
+        with pytest.raises(ValueError, match="num_shape: expected an integer in 1..2"):
+            load_ict_npz(tmp_path / "count.npz", num_shape=bad)
+
+
+def test_a_download_cut_short_without_a_length_is_not_kept(ict_raw, tmp_path, monkeypatch):
+    payload = _repo_zip(ict_raw)
+    monkeypatch.setattr(urllib.request, "urlopen",
+                        lambda *a, **k: _FakeResponse(payload[: len(payload) // 2], send_length=False))
+    with pytest.raises(FetchError, match="not a complete zip archive"):
+        fetch_ict(cache=tmp_path, progress=None)
+    assert list((tmp_path / "ict").iterdir()) == []  # a retry downloads again
+    monkeypatch.setattr(urllib.request, "urlopen", lambda *a, **k: _FakeResponse(payload))
+    assert load_ict_npz(fetch_ict(cache=tmp_path, progress=None)).num_shape == 2

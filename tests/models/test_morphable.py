@@ -181,3 +181,31 @@ def test_ict_npz(ict_npz):
     assert model.metadata["landmarks_ibug68"] == raw["landmarks_ibug68"].tolist()
     nose = model.mean[model.landmarks["nose_tip"]]
     assert nose[2] < model.mean[:, 2].min() + 1.0  # within 1 mm of the most forward vertex
+
+
+def test_inconsistent_landmark_tables_and_units_are_refused(tmp_path):
+    model = tiny_model()
+    path = tmp_path / "m.npz"
+    model.save(path)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    for change, match in (({"landmark_names": np.array(["a", "b", "c"])}, "3 landmark names .* for 2 landmark indices"),
+                          ({"landmark_names": np.array(["a", "a"])}, r"2 landmark names \(distinct: 1\)"),
+                          ({"units": np.array("cm")}, "units 'cm', expected 'mm'")):
+        np.savez(tmp_path / "bad.npz", **{**arrays, **change})
+        with pytest.raises(ModelFileError, match=f"bad.npz: {match}"):
+            MorphableModel.load(tmp_path / "bad.npz")
+
+
+def test_sampling_and_export_check_their_arguments(tmp_path):
+    model = tiny_model()
+    for batch in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="batch: expected a non-negative integer"):
+            model.sample_shape_coeffs(batch)
+    for scale in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match="scale: expected a finite number >= 0"):
+            model.sample_shape_coeffs(2, scale=scale)
+    with pytest.raises(ValueError, match=r"path: expected a .ply or .obj file, got '.*head.foo'"):
+        model.export_mesh(tmp_path / "head.foo")
+    with pytest.raises(ValueError, match=r"shape_coeffs: expected shape \(3,\) or \(1, 3\), got \(2, 3\)"):
+        model.export_mesh(tmp_path / "head.ply", torch.zeros(2, 3))

@@ -31,3 +31,36 @@ def test_unreadable_path_names_the_file(tmp_path):
 def test_ict_found_in_shared(ict_npz, monkeypatch):
     monkeypatch.setenv("FACENORMALS_ICT", str(ict_npz))
     assert load_model("auto").name == "ict"
+
+
+def test_a_missing_ict_path_in_the_environment_is_an_error(tmp_path, monkeypatch):
+    monkeypatch.setenv("FACENORMALS_ICT", str(tmp_path / "nowhere.npz"))
+    with pytest.raises(ModelFileError, match="nowhere.npz: FACENORMALS_ICT names a file that does not exist"):
+        load_model("auto")
+
+
+def test_a_repository_zip_names_the_conversion(tmp_path):
+    path = tmp_path / "ICT-FaceKit-master.zip"
+    path.write_bytes(b"PK")
+    with pytest.raises(ModelFileError, match="facenormals models fetch ict --from .*ICT-FaceKit-master.zip"):
+        load_model(str(path))
+
+
+def test_models_without_landmarks_are_refused_with_the_remedy():
+    from facenormals.fitting import fit_head
+    from facenormals.fitting.oracle import render_oracle_views
+    from facenormals.models import MorphableModel, builtin_head_model
+
+    head = builtin_head_model()
+    bare = MorphableModel(head.mean, head.shape_basis, head.faces, shape_std=head.shape_std, name="bare")
+    views = render_oracle_views(head, torch.zeros(1, head.num_shape), [0.0], image_size=32)
+    with pytest.raises(ValueError, match="model: 'bare' has 0 named landmarks; .*MorphableModel.with_annotations"):
+        fit_head(views.normal_maps, torch.zeros(1, 1, 0, 2), bare)
+    annotated = bare.with_annotations(head.landmarks)
+    assert annotated.landmark_names == head.landmark_names and annotated.name == "bare"
+    region = annotated.face_region
+    nose = head.mean[head.landmarks["nose_tip"]]
+    assert bool(((head.mean[region] - nose).norm(dim=-1) < 95.0).all())
+    assert 0.8 < int((region & head.face_region).sum()) / int(head.face_region.sum()) <= 1.0
+    fit = fit_head(views.normal_maps, views.landmarks, annotated, rounds=1, iterations_per_round=2)
+    assert fit.vertices.shape == (1, head.num_vertices, 3)

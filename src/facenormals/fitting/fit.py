@@ -232,6 +232,9 @@ def fit_head(
 
     # 1. Pre-alignment: the mean head's landmarks, per view.
     if initial_pose is None:
+        if len(model.landmark_names) < 4:
+            raise ValueError(f"model: {model.name!r} has {len(model.landmark_names)} named landmarks; at least 4 are needed to "
+                         "pre-align a head: attach them with MorphableModel.with_annotations (docs/models.md)")
         flat_mask = landmark_mask.reshape(B * V, -1)
         for index, count in enumerate(flat_mask.sum(1).tolist()):
             if count < 4:

@@ -11,6 +11,7 @@ import http.client
 import tempfile
 import urllib.error
 import urllib.request
+import zipfile
 from pathlib import Path, PurePosixPath
 from typing import Callable
 from urllib.parse import urlparse
@@ -62,6 +63,8 @@ def _download(url: str, target: Path, timeout: float, progress: Callable[[str], 
                         progress(f"  {size}")
                 if total and done < total:
                     raise http.client.IncompleteRead(b"", total - done)
+        if not zipfile.is_zipfile(handle.name):  # cut short by a server that sent no length
+            raise ValueError(f"the download ({done} bytes) is not a complete zip archive")
         _publish(handle.name, target)
     except BaseException as error:
         Path(handle.name).unlink(missing_ok=True)

@@ -85,6 +85,8 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
                 raise ModelFileError(f"{path}: not an ICT-FaceKit archive, missing arrays {missing}")
             units = str(data["units"]) if "units" in data.files else "cm"
             arrays = {k: data[k] for k in ICT_KEYS}
+            if "face_vertex_count" in data.files:
+                arrays["face_vertex_count"] = int(data["face_vertex_count"])
     except ModelFileError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
@@ -95,10 +97,13 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
     available = arrays["identity_basis"].shape[0]
     if num_shape is None:
         num_shape = available
-    if not 1 <= num_shape <= available:
-        raise ValueError(f"num_shape: expected 1..{available}, got {num_shape}")
+    if isinstance(num_shape, bool) or not isinstance(num_shape, (int, np.integer)) or not 1 <= num_shape <= available:
+        raise ValueError(f"num_shape: expected an integer in 1..{available}, got {num_shape!r}")
     arrays["identity_basis"] = arrays["identity_basis"][:num_shape]
-    return _ict_model(arrays, scale, dtype, str(path))
+    try:
+        return _ict_model(arrays, scale, dtype, str(path))
+    except (ValueError, IndexError) as error:  # arrays that do not fit together
+        raise ModelFileError(f"{path}: inconsistent ICT-FaceKit archive ({type(error).__name__}: {error})") from None
 
 
 def _ict_model(arrays: dict, scale: float, dtype: torch.dtype, file: str) -> MorphableModel:

@@ -3,6 +3,7 @@ r"""Linear morphable models, :math:`X = X_0 + W y (+ E e)`."""
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -213,6 +214,10 @@ class MorphableModel(nn.Module):
 
     def sample_shape_coeffs(self, batch: int, scale: float = 1.0, generator: torch.Generator | None = None) -> Tensor:
         """Random coefficients :math:`y_k \\sim \\mathcal{N}(0, (\\text{scale}\\,\\sigma_k)^2)` of shape ``(B, K)``."""
+        if isinstance(batch, bool) or not isinstance(batch, int) or batch < 0:
+            raise ValueError(f"batch: expected a non-negative integer, got {batch!r}")
+        if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale >= 0):
+            raise ValueError(f"scale: expected a finite number >= 0, got {scale!r}")
         noise = torch.randn(batch, self.num_shape, generator=generator, dtype=self.shape_std.dtype)
         return noise.to(self.shape_std.device) * (scale * self.shape_std)
 
@@ -220,11 +225,52 @@ class MorphableModel(nn.Module):
         """Write the mean head, or the head with ``shape_coeffs`` ``(K,)``/``(1, K)``, as ``.ply`` or ``.obj``."""
         from facenormals.mesh.io import save_mesh
 
+        if Path(path).suffix.lower() not in (".ply", ".obj"):
+            raise ValueError(f"path: expected a .ply or .obj file, got {str(path)!r}")
         if shape_coeffs is None:
             vertices = self.mean
         else:
+            if shape_coeffs.numel() != self.num_shape or shape_coeffs.dim() > 2:
+                raise ValueError(f"shape_coeffs: expected shape ({self.num_shape},) or (1, {self.num_shape}), "
+                                 f"got {tuple(shape_coeffs.shape)}")
             vertices = self(shape_coeffs.reshape(1, -1).to(self.mean))[0]
         save_mesh(path, vertices, self.faces)
+
+    def with_annotations(self, landmarks: Mapping[str, int], face_region: Tensor | None = None,
+                         radius: float = 95.0) -> "MorphableModel":
+        """A copy with named landmarks (and a face region) attached: what a model brought from LYHM,
+        BFM or FLAME files needs before the pipeline can use it.
+
+        Args:
+            landmarks: landmark name → vertex index; the network's are
+                :data:`~facenormals.models.LANDMARK_NAMES` (at least 4 of them to pre-align, all 24
+                to use every detection).
+            face_region: ``(N,)`` bool mask scored by evaluation; default: the vertices within
+                ``radius`` mm of the ``nose_tip`` landmark (the crop of common benchmarks) whose
+                normals face forward (−z), or this model's region without a ``nose_tip``.
+            radius: the default region's radius in mm.
+
+        Example:
+            >>> from facenormals.models import builtin_head_model
+            >>> head = builtin_head_model()
+            >>> bare = MorphableModel(head.mean, head.shape_basis, head.faces, shape_std=head.shape_std)
+            >>> model = bare.with_annotations(head.landmarks)
+            >>> len(model.landmark_names), int((model.face_region != head.face_region).sum()) < 200
+            (24, True)
+        """
+        from facenormals.mesh import vertex_normals
+
+        landmarks = dict(landmarks)
+        if face_region is None and "nose_tip" in landmarks:
+            mean = self.mean.double()
+            near = (mean - mean[int(landmarks["nose_tip"])]).norm(dim=-1) < radius
+            facing = vertex_normals(mean[None], self.faces)[0, :, 2] < 0
+            face_region = near & facing
+        return MorphableModel(self.mean, self.shape_basis, self.faces, shape_std=self.shape_std,
+                              expression_basis=self.expression_basis, landmarks=landmarks,
+                              expression_names=self.expression_names or None, name=self.name,
+                              metadata=self.metadata,
+                              face_region=self.face_region if face_region is None else face_region)
 
     def extra_repr(self) -> str:
         return (
@@ -280,6 +326,11 @@ class MorphableModel(nn.Module):
             raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
         names = [str(n) for n in arrays.get("landmark_names", np.array([], dtype=str))]
         indices = arrays.get("landmark_indices", np.zeros(0, dtype=np.int64)).tolist()
+        if len(names) != len(indices) or len(set(names)) != len(names):
+            raise ModelFileError(f"{path}: {len(names)} landmark names (distinct: {len(set(names))}) for "
+                                 f"{len(indices)} landmark indices")
+        if "units" in arrays and str(arrays["units"]) != "mm":
+            raise ModelFileError(f"{path}: units {str(arrays['units'])!r}, expected 'mm'")
         for key, kind in (("mean", "f"), ("shape_basis", "f"), ("shape_std", "f"), ("expression_basis", "f"),
                           ("faces", "iu")):
             if key in arrays and arrays[key].dtype.kind not in kind:

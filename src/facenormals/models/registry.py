@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from facenormals.models.builtin import builtin_head_model
-from facenormals.models.ict import load_ict_npz
+from facenormals.models.ict import load_ict_npz, load_ict_raw
 from facenormals.models.morphable import ModelFileError, MorphableModel
 
 __all__ = ["cache_dir", "find_ict_archive", "load_model"]
@@ -26,7 +26,10 @@ def find_ict_archive() -> Path | None:
     beside the working directory or the repository; ``None`` if absent."""
     candidates = []
     if os.environ.get("FACENORMALS_ICT"):
-        candidates.append(Path(os.environ["FACENORMALS_ICT"]))
+        named = Path(os.environ["FACENORMALS_ICT"])
+        if not named.is_file():
+            raise ModelFileError(f"{named}: FACENORMALS_ICT names a file that does not exist; fix or unset it")
+        candidates.append(named)
     candidates.append(cache_dir() / "ict" / ICT_ARCHIVE)
     repo_root = Path(__file__).resolve().parents[3]
     for base in (Path.cwd(), repo_root):
@@ -39,9 +42,14 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
     """Dispatch a model file to its loader by extension (and, for ``.mat``/``.npz``, by its keys)."""
     from facenormals.models import formats
 
+    if path.is_dir() and (path / "generic_neutral_mesh.obj").is_file():
+        return load_ict_raw(path, dtype=dtype)
     if not path.is_file():
         raise ModelFileError(f"{path}: model file not found")
     suffix = path.suffix.lower()
+    if suffix == ".zip":
+        raise ModelFileError(f"{path}: a repository archive is converted once with "
+                             f"`facenormals models fetch ict --from {path}`; then use --model ict")
     if suffix == ".npz":
         import zipfile
 
@@ -56,10 +64,18 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
     if suffix == ".mat":
         import scipy.io
 
-        try:
-            names = {entry[0] for entry in scipy.io.whosmat(path)}
-        except Exception:  # v7.3 (HDF5) files and corrupt files: let the loaders report
-            names = set()
+        names: set[str] = set()
+        if formats._is_hdf5(path):  # MATLAB v7.3
+            try:
+                with formats._h5py(path, "model").File(path, "r") as handle:
+                    names = set(handle.keys())
+            except OSError:
+                pass  # corrupt: the loader reports it
+        else:
+            try:
+                names = {entry[0] for entry in scipy.io.whosmat(path)}
+            except Exception:  # corrupt files: let the loaders report
+                pass
         if "shapeMU" in names:
             return formats.load_bfm2009(path, dtype=dtype)
         return formats.load_lyhm(path, dtype=dtype)

@@ -226,6 +226,9 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
     check_shape(maps.landmarks, ["V", "C", 2], "maps.landmarks", dims)
     check_shape(maps.found, ["V", "C"], "maps.found", dims)
     V, S = dims["V"], dims["S"]
+    if len(model.landmark_names) < 4:
+        raise ValueError(f"model: {model.name!r} has {len(model.landmark_names)} named landmarks; at least 4 are needed to "
+                         "pre-align a head: attach them with MorphableModel.with_annotations (docs/models.md)")
     if not (math.isfinite(focal) and focal > 0):
         raise ValueError(f"focal: expected a positive focal length in pixels, got {focal}")
     channels = landmark_channels(model)
