@@ -37,7 +37,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such checkpoint")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=False)
+        state = torch.load(path, map_location=map_location, weights_only=True)  # plain data: no code runs on load
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
         raise ValueError(f"{path}: not a readable checkpoint ({error})") from None
     if not isinstance(state, dict) or state.get("format") != "facenormals-train":
