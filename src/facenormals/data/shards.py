@@ -209,8 +209,7 @@ class _Progress:
 def _model_fingerprint(model) -> dict:
     digest = hashlib.sha256()
     for array in (model.mean, model.shape_basis, model.shape_std, model.expression_basis, model.faces):
-        if array is not None:
-            digest.update(np.ascontiguousarray(array.detach().cpu().numpy()).tobytes())
+        digest.update(np.ascontiguousarray(array.detach().cpu().numpy()).tobytes())
     return {
         "name": model.name,
         "content_sha256": digest.hexdigest(),

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_shape, check_tensor
-from facenormals.fitting.pose import prealign_pose
+from facenormals.fitting.pose import prealign_pose, require_pose_landmarks
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
 from facenormals.fitting.subsample import grid_subset
@@ -232,9 +232,7 @@ def fit_head(
 
     # 1. Pre-alignment: the mean head's landmarks, per view.
     if initial_pose is None:
-        if len(model.landmark_names) < 4:
-            raise ValueError(f"model: {model.name!r} has {len(model.landmark_names)} named landmarks; at least 4 are needed to "
-                         "pre-align a head: attach them with MorphableModel.with_annotations (docs/models.md)")
+        require_pose_landmarks(model)
         flat_mask = landmark_mask.reshape(B * V, -1)
         for index, count in enumerate(flat_mask.sum(1).tolist()):
             if count < 4:

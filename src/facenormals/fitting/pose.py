@@ -55,6 +55,14 @@ class PoseEstimate:
     status: Tensor
 
 
+def require_pose_landmarks(model) -> None:
+    """Raise ``ValueError`` unless ``model`` names at least 4 landmarks, the fewest a pre-alignment takes."""
+    if len(model.landmark_names) < 4:
+        raise ValueError(f"model: {model.name!r} has {len(model.landmark_names)} named landmarks; at least 4 are "
+                         "needed to pre-align a head: attach them with MorphableModel.with_annotations "
+                         "(docs/models.md)")
+
+
 def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: Tensor | None = None) -> Tensor:
     r"""Jacobian of projected points with respect to the pose ``x = (roll, pitch, yaw, tx, ty, tz)``.
 

@@ -29,7 +29,6 @@ normal rows are one sparse (CSR) product with the basis rows :math:`W`.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import torch

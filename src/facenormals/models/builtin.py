@@ -17,7 +17,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from facenormals.models.morphable import MorphableModel
+from facenormals.models.morphable import FACE_CROP_RADIUS_MM, MorphableModel
 
 __all__ = ["BUILTIN_PARAMETERS", "builtin_head_model", "builtin_head_surface"]
 
@@ -185,7 +185,7 @@ def _face_region(mean: np.ndarray) -> np.ndarray:
     """The evaluation face region: the front of the head within 95 mm of the nose tip (as for ICT)."""
     fwd = -mean[:, 2]
     nose = mean[np.argmax(np.where(np.abs(mean[:, 0]) < 0.5, fwd, -np.inf))]
-    return (np.linalg.norm(mean - nose, axis=1) < 95.0) & (fwd > 0.0)
+    return (np.linalg.norm(mean - nose, axis=1) < FACE_CROP_RADIUS_MM) & (fwd > 0.0)
 
 
 def builtin_head_model(dtype: torch.dtype = torch.float32) -> MorphableModel:

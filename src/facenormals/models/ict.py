@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from facenormals.models.landmarks import ict_landmark_indices
-from facenormals.models.morphable import ModelFileError, MorphableModel
+from facenormals.models.morphable import FACE_CROP_RADIUS_MM, ModelFileError, MorphableModel
 
 __all__ = ["ict_npz_from_raw", "load_ict_npz", "load_ict_raw", "opengl_to_model_frame"]
 
@@ -40,7 +40,6 @@ ICT_HEAD_VERTEX_COUNT = 11248
 ICT_HEAD_POLYGON_COUNT = 11144
 #: The face area (region #0) is the first 9409 vertices.
 ICT_FACE_VERTEX_COUNT = 9409
-FACE_CROP_RADIUS_MM = 95.0
 ICT_NEUTRAL = "generic_neutral_mesh.obj"
 ICT_CONFIG = "vertex_indices.json"
 ICT_FOLDER = "FaceXModel"

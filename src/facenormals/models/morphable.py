@@ -16,6 +16,9 @@ from facenormals.core.check import check_faces, check_finite, check_floating, ch
 
 __all__ = ["MorphableModel", "ModelFileError"]
 
+#: Radius in mm around the nose tip of the evaluation face region (the crop of common face-reconstruction
+#: benchmarks): the built-in head's, ICT-FaceKit's and :meth:`MorphableModel.with_annotations`'s default.
+FACE_CROP_RADIUS_MM = 95.0
 FORMAT_NAME = "facenormals-morphable-model"
 FORMAT_VERSION = 1
 
@@ -237,7 +240,7 @@ class MorphableModel(nn.Module):
         save_mesh(path, vertices, self.faces)
 
     def with_annotations(self, landmarks: Mapping[str, int], face_region: Tensor | None = None,
-                         radius: float = 95.0) -> "MorphableModel":
+                         radius: float = FACE_CROP_RADIUS_MM) -> "MorphableModel":
         """A copy with named landmarks (and a face region) attached: what a model brought from LYHM,
         BFM or FLAME files needs before the pipeline can use it.
 

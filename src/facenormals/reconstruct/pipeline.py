@@ -30,6 +30,7 @@ from facenormals.core.check import check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks, fit_head
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
+from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.models import LANDMARK_NAMES, MorphableModel
 from facenormals.reconstruct.detect import NoFaceError
@@ -226,9 +227,7 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
     check_shape(maps.landmarks, ["V", "C", 2], "maps.landmarks", dims)
     check_shape(maps.found, ["V", "C"], "maps.found", dims)
     V, S = dims["V"], dims["S"]
-    if len(model.landmark_names) < 4:
-        raise ValueError(f"model: {model.name!r} has {len(model.landmark_names)} named landmarks; at least 4 are needed to "
-                         "pre-align a head: attach them with MorphableModel.with_annotations (docs/models.md)")
+    require_pose_landmarks(model)
     if not (math.isfinite(focal) and focal > 0):
         raise ValueError(f"focal: expected a positive focal length in pixels, got {focal}")
     channels = landmark_channels(model)

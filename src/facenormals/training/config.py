@@ -92,14 +92,14 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
-        for name in ("lr", "sigma"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name}: expected a finite positive value, got {value!r}")
-        for name in ("weight_decay", "landmark_weight", "landmark_peak_weight", "foreground_weight"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name}: expected a finite non-negative value, got {value!r}")
+        for names, positive in ((("lr", "sigma"), True),
+                                (("weight_decay", "landmark_weight", "landmark_peak_weight", "foreground_weight"), False)):
+            for name in names:
+                value = getattr(self, name)
+                if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                        and (value > 0 if positive else value >= 0)):
+                    raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'} value, "
+                                     f"got {value!r}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay: expected a value in [0, 1), got {self.ema_decay!r}")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
