@@ -7,7 +7,7 @@ import pytest
 import facenormals
 
 PUBLIC = {
-    "facenormals.core": ["check_finite", "check_floating", "check_nonnegative", "check_same_dims", "check_shape", "check_tensor"],
+    "facenormals.core": ["atomic_write", "check_finite", "check_floating", "check_nonnegative", "check_same_dims", "check_shape", "check_tensor"],
     "facenormals.geometry": ["euler_rotation_derivatives", "euler_to_rotation_matrix", "project_points",
                              "projection_jacobian", "rotation_matrix_to_euler", "transform_points"],
     "facenormals.mesh": ["VertexNormals", "VertexNormalsJacobian", "load_mesh", "save_mesh", "vertex_normals",

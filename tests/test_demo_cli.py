@@ -69,8 +69,6 @@ def test_models_fetch_from_local_copy(tmp_path, monkeypatch, capsys):
 
 
 def test_evaluate_command(tmp_path, capsys):
-    import torch
-
     model = builtin_head_model()
     ref = tmp_path / "ref.ply"
     pred = tmp_path / "pred.obj"

@@ -124,9 +124,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                                      correspondences=(pred_landmarks, model.landmarks))
     print(report)
     if args.json:
-        from pathlib import Path
+        from facenormals.core import atomic_write
 
-        Path(args.json).write_text(json.dumps(report.as_dict(), indent=2))
+        with atomic_write(args.json) as part:
+            part.write_text(json.dumps(report.as_dict(), indent=2))
         print(f"wrote {args.json}")
     return 0
 

@@ -85,9 +85,11 @@ def test_resume_skips_finished_shards(dataset_root, tmp_path):
         (root / name).write_bytes((dataset_root / name).read_bytes())
     os.remove(root / "shard_00001.npz")
     (root / "shard_00002.npz").write_bytes(b"truncated")  # an unreadable shard is regenerated
+    (root / ".shard_00001.npz.k9x2.part.npz").write_bytes(b"left by a killed writer")
     before = os.stat(root / "shard_00000.npz").st_mtime_ns
     summary = _write(root)
     assert (summary.shards_written, summary.shards_skipped, summary.samples) == (2, 1, 6)
+    assert sorted(os.listdir(root)) == sorted(os.listdir(dataset_root))  # the leftover is gone
     assert os.stat(root / "shard_00000.npz").st_mtime_ns == before
     for name in ("shard_00001.npz", "shard_00002.npz"):
         with np.load(root / name) as new, np.load(dataset_root / name) as old:

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import torch
 
 from facenormals.models import LANDMARK_NAMES, LANDMARK_PAIRS, builtin_head_model, load_ict_npz
 from facenormals.models.landmarks import ICT_EAR_VERTICES, ict_landmark_indices

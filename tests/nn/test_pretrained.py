@@ -77,7 +77,7 @@ def test_update_weight_metadata_keeps_the_weights(tmp_path):
     assert after.metadata == {**before.metadata, "fit_weights": {"normals": 0.25, "prior": 1.5}, "note": "tuned"}
     for a, b in zip(before.state_dict().values(), after.state_dict().values()):
         assert torch.equal(a, b)
-    assert not (tmp_path / "mine.pt.partial").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.pt"]  # no temporary file left
     with pytest.raises(FileNotFoundError, match="missing.pt: no such weight file"):
         update_weight_metadata(tmp_path / "missing.pt", note="x")
     (tmp_path / "junk.pt").write_bytes(b"not a weight file")

@@ -25,7 +25,6 @@ from facenormals.data.head import HeadAssets
 from facenormals.data.render import MeshPart, RenderedTiles, TileRenderer, TileScene
 from facenormals.data.scene import (
     HEAD_LABELS,
-    LABELS,
     clothing_part,
     eye_parts,
     hair_parts,
@@ -439,7 +438,6 @@ class SyntheticHeadGenerator:
 
     def _finish(self, plans: list[_Plan], rendered: RenderedTiles) -> SynthBatch:
         model = self.model
-        size = self.config.image_size
         coverage = rendered.coverage.astype(np.float32)[..., None] / 255.0
         backgrounds = np.stack([p.background for p in plans]).astype(np.float32)
         images = np.clip(np.rint(rendered.color.astype(np.float32) + backgrounds * (1.0 - coverage)), 0, 255).astype(np.uint8)

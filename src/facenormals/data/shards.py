@@ -38,6 +38,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
+from facenormals.core.files import PART, atomic_write
 from facenormals.data.generator import SynthBatch, SynthConfig
 
 __all__ = ["SynthSummary", "read_manifest", "write_dataset"]
@@ -114,9 +115,9 @@ def _write_member(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> Non
 
 
 def write_shard(path: Path, batch: SynthBatch) -> None:
-    """Write one shard atomically (a temporary file renamed when complete)."""
-    temporary = path.with_name(path.name + f".tmp{os.getpid()}")
-    with zipfile.ZipFile(temporary, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+    """Write one shard atomically and durably (:func:`~facenormals.core.files.atomic_write`)."""
+    with atomic_write(path) as part, zipfile.ZipFile(part, "w", compression=zipfile.ZIP_DEFLATED,
+                                                     compresslevel=1) as archive:
         for name in SHARD_ARRAYS:
             _write_member(archive, name, getattr(batch, name))
         normals = np.rint(batch.normals * NORMAL_SCALE).astype(np.int16)
@@ -124,7 +125,6 @@ def write_shard(path: Path, batch: SynthBatch) -> None:
             _write_member(archive, f"image/{i:04d}", batch.image[i])
             _write_member(archive, f"normals/{i:04d}", normals[i])
             _write_member(archive, f"segmentation/{i:04d}", batch.segmentation[i])
-    os.replace(temporary, path)
 
 
 def shard_is_complete(path: Path, indices: range) -> bool:
@@ -325,14 +325,13 @@ def write_dataset(
                     f"{root}: holds a dataset with another {key} ({existing.get(key)!r} != {manifest[key]!r}); "
                     "use another folder or the same settings to resume"
                 )
-    temporary = path.with_name(path.name + f".tmp{os.getpid()}")
-    temporary.write_text(json.dumps(manifest, indent=1))
-    os.replace(temporary, path)
+    with atomic_write(path) as part:
+        part.write_text(json.dumps(manifest, indent=1))
 
     num_shards = -(-count // shard_size)
     mine = [k for k in range(num_shards) if k % world_size == rank]
-    for k in mine:  # leftovers of an interrupted run of this rank
-        for stale in root.glob(shard_name(k) + ".tmp*"):
+    for k in mine:  # leftovers of a killed run of this rank
+        for stale in root.glob(f".{shard_name(k)}.*{PART}*"):
             stale.unlink(missing_ok=True)
     pending = [k for k in mine if not shard_is_complete(root / shard_name(k), shard_range(k, count, shard_size))]
     chunks = [(r.start + i, min(r.stop, r.start + i + chunk_size))

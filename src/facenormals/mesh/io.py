@@ -9,12 +9,16 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_shape
+from facenormals.core.files import atomic_write
 
 __all__ = ["load_mesh", "save_mesh"]
 
 
 def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
     """Write a mesh; the format follows the extension (``.ply``, ``.obj``, ``.stl``, ``.off``, ``.glb``).
+
+    The file is replaced atomically (:func:`~facenormals.core.atomic_write`): an error midway leaves
+    an existing file as it was.
 
     Args:
         path: output file; its folder is created.
@@ -42,7 +46,8 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
     mesh = trimesh.Trimesh(
         vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy().astype(np.int64), process=False
     )
-    mesh.export(path)
+    with atomic_write(path) as part:
+        mesh.export(part, file_type=path.suffix.lstrip(".").lower())
     return path
 
 

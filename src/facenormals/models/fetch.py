@@ -8,7 +8,6 @@ or read from a local copy, and its ``FaceXModel/`` folder is converted into
 from __future__ import annotations
 
 import http.client
-import tempfile
 import urllib.error
 import urllib.request
 import zipfile
@@ -18,7 +17,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 
-from facenormals.models.ict import _publish, ict_npz_from_raw
+from facenormals.core.files import publish, temporary_beside
+from facenormals.models.ict import ict_npz_from_raw
 from facenormals.models.morphable import ModelFileError
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
 
@@ -43,9 +43,9 @@ def _zip_name(url: str) -> str:
 def _download(url: str, target: Path, timeout: float, progress: Callable[[str], object] | None) -> None:
     """Stream ``url`` into ``target`` through a temporary file in the same folder (renamed at the end)."""
     target.parent.mkdir(parents=True, exist_ok=True)
-    handle = tempfile.NamedTemporaryFile(dir=target.parent, prefix=f".{target.name}.", suffix=".part", delete=False)
+    part = temporary_beside(target)
     try:
-        with handle:
+        with open(part, "wb") as handle:
             request = urllib.request.Request(url, headers={"User-Agent": "facenormals"})
             with urllib.request.urlopen(request, timeout=timeout) as response:
                 total = int(response.headers.get("Content-Length") or 0)
@@ -63,11 +63,11 @@ def _download(url: str, target: Path, timeout: float, progress: Callable[[str], 
                         progress(f"  {size}")
                 if total and done < total:
                     raise http.client.IncompleteRead(b"", total - done)
-        if not zipfile.is_zipfile(handle.name):  # cut short by a server that sent no length
+        if not zipfile.is_zipfile(part):  # cut short by a server that sent no length
             raise ValueError(f"the download ({done} bytes) is not a complete zip archive")
-        _publish(handle.name, target)
+        publish(part, target)
     except BaseException as error:
-        Path(handle.name).unlink(missing_ok=True)
+        part.unlink(missing_ok=True)
         if isinstance(error, (OSError, http.client.HTTPException, ValueError)):
             reason = getattr(error, "reason", None) or error
             raise FetchError(

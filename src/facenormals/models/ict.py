@@ -15,9 +15,7 @@ eyelashes etc. are dropped.
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 import zipfile
 from pathlib import Path, PurePosixPath
 from typing import Callable
@@ -25,6 +23,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from facenormals.core.files import atomic_write
 from facenormals.models.landmarks import ict_landmark_indices
 from facenormals.models.morphable import FACE_CROP_RADIUS_MM, ModelFileError, MorphableModel
 
@@ -436,15 +435,6 @@ def load_ict_raw(
     return _ict_model(raw, 10.0, dtype, raw["location"])  # cm -> mm
 
 
-def _publish(temporary: str | Path, target: Path) -> None:
-    """Give a finished temporary file the usual permissions (it was created 0600) and rename it to
-    ``target`` atomically."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(temporary, 0o666 & ~umask)
-    os.replace(temporary, target)
-
-
 def ict_npz_from_raw(folder: str | Path, out_path: str | Path, num_shape: int | None = None) -> Path:
     """Convert the original ``FaceXModel`` layout into the ``ict_face_head.npz`` archive read by
     :func:`load_ict_npz`.
@@ -480,12 +470,6 @@ def ict_npz_from_raw(folder: str | Path, out_path: str | Path, num_shape: int | 
     }
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    handle = tempfile.NamedTemporaryFile(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=".part", delete=False)
-    try:
-        with handle:
-            np.savez(handle, **arrays)
-        _publish(handle.name, out_path)
-    except BaseException:
-        Path(handle.name).unlink(missing_ok=True)
-        raise
+    with atomic_write(out_path) as part, open(part, "wb") as handle:
+        np.savez(handle, **arrays)
     return out_path

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from facenormals.core.check import check_faces, check_finite, check_floating, check_shape
+from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
 
@@ -299,7 +300,7 @@ class MorphableModel(nn.Module):
             "metadata": np.array(json.dumps(self.metadata)),
             "face_region": self.face_region.cpu().numpy(),
         }
-        with open(path, "wb") as handle:
+        with atomic_write(path) as part, open(part, "wb") as handle:
             np.savez(handle, **arrays)
 
     @classmethod

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from facenormals.core.files import atomic_write
 from facenormals.nn.unet import NormalLandmarkUNet
 
 __all__ = ["load_weights", "pretrained_weights_path", "update_weight_metadata"]
@@ -76,9 +77,8 @@ def update_weight_metadata(path: str | Path, **items: object) -> Path:
     path = Path(path)
     payload = _read_payload(path)
     payload["metadata"] = {**payload.get("metadata", {}), **items}
-    partial = path.with_name(path.name + ".partial")
-    torch.save(payload, partial)
-    partial.replace(path)
+    with atomic_write(path) as part:
+        torch.save(payload, part)
     return path
 
 

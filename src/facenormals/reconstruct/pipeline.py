@@ -14,9 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import re
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +25,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_shape
+from facenormals.core.files import publish, temporary_beside
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks, fit_head
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
@@ -327,10 +326,9 @@ class _Staged:
     def write(self, path: Path, write: Callable[[Path], object]) -> Path:
         if path.is_dir():  # found now, not when renaming after other files were replaced
             raise OSError(f"{path}: is a folder, cannot write the file there")
-        handle, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-        os.close(handle)
-        self.files.append((Path(name), path))
-        write(Path(name))
+        part = temporary_beside(path)
+        self.files.append((part, path))
+        write(part)
         return path
 
     def png(self, path: Path, rgb: np.ndarray) -> Path:
@@ -344,7 +342,7 @@ class _Staged:
 
     def commit(self) -> list[Path]:
         for tmp, path in self.files:
-            os.replace(tmp, path)
+            publish(tmp, path)
         done, self.files = [path for _, path in self.files], []
         return done
 

@@ -2,27 +2,26 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import torch
 from torch.utils.data import Dataset
 
+from facenormals.core.files import atomic_write
 from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
 
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
-    """Write ``state`` with :func:`torch.save` atomically (temporary file, then rename).
-
-    A run killed while saving keeps its previous checkpoint.
+    """Write ``state`` with :func:`torch.save` atomically and durably
+    (:func:`~facenormals.core.files.atomic_write`): a run killed while saving, or a machine that
+    goes down, keeps its previous checkpoint.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    with atomic_write(path) as part:
+        torch.save(state, part)
     return path
 
 

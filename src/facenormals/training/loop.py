@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import math
-import os
 import signal
 import time
 from dataclasses import dataclass
@@ -21,13 +19,14 @@ from typing import Iterator
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from facenormals.core.files import atomic_write
 from facenormals.data.augment import PhotoAugmentation
 from facenormals.data.landmark_maps import landmark_maps
 from facenormals.nn.loss import normal_landmark_loss
 from facenormals.nn.unet import NormalLandmarkUNet, UNetOutput
 from facenormals.training.checkpoint import load_checkpoint, save_checkpoint
 from facenormals.training.config import TrainConfig
-from facenormals.training.distributed import DistContext, init_distributed, resolve_precision
+from facenormals.training.distributed import init_distributed, resolve_precision
 from facenormals.training.metrics import NetworkMetrics, evaluate_network
 
 __all__ = ["TrainSummary", "train"]
@@ -102,12 +101,10 @@ def _truncate_csv(path: Path, step: int) -> None:
         rows = list(csv.DictReader(handle))
     kept = [r for r in rows if int(r["step"]) <= step]
     if len(kept) != len(rows):  # rewritten beside and renamed over it: an error leaves the old log
-        tmp = path.with_name(path.name + ".tmp")
-        with tmp.open("w", newline="") as handle:
+        with atomic_write(path) as part, part.open("w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(kept)
-        os.replace(tmp, path)
 
 
 def _ignore_stop_signals(_worker_id: int) -> None:

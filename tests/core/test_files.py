@@ -1,0 +1,56 @@
+"""Atomic, durable writes: the target holds the old or the new content, never a part."""
+
+import os
+import stat
+
+import pytest
+
+from facenormals.core.files import PART, atomic_write, publish, temporary_beside
+
+
+def test_atomic_write_publishes_and_leaves_no_temporary(tmp_path):
+    target = tmp_path / "table.csv"
+    with atomic_write(target) as part:
+        assert part.parent == tmp_path and part != target and part.name.endswith(PART + ".csv")
+        part.write_text("a,b\n")
+        assert not target.exists()  # nothing visible before the block ends
+    assert target.read_text() == "a,b\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+
+
+@pytest.mark.parametrize("error", [OSError("disk full"), KeyboardInterrupt()])
+def test_a_failed_write_keeps_the_old_file(tmp_path, error):
+    target = tmp_path / "last.pt"
+    target.write_bytes(b"old checkpoint")
+    with pytest.raises(type(error)):
+        with atomic_write(target) as part:
+            part.write_bytes(b"half of a new one")
+            raise error
+    assert target.read_bytes() == b"old checkpoint"
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
+
+
+def test_temporaries_are_unique_and_hidden(tmp_path):
+    names = {temporary_beside(tmp_path / "shard_00000.npz").name for _ in range(20)}
+    assert len(names) == 20
+    assert all(n.startswith(".shard_00000.npz.") and n.endswith(".part.npz") for n in names)
+
+
+def test_published_files_get_umask_permissions_and_are_flushed(tmp_path, monkeypatch):
+    synced = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    umask = os.umask(0o027)
+    try:
+        part = temporary_beside(tmp_path / "w.pt")
+        assert stat.S_IMODE(part.stat().st_mode) == 0o600  # as mkstemp creates it
+        part.write_bytes(b"x")
+        publish(part, tmp_path / "w.pt")
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "w.pt").stat().st_mode) == 0o640
+    assert len(synced) == (2 if hasattr(os, "O_DIRECTORY") else 1)  # the file, then its folder entry
+    synced.clear()
+    part = temporary_beside(tmp_path / "v.pt")
+    publish(part, tmp_path / "v.pt", durable=False)
+    assert synced == [] and (tmp_path / "v.pt").exists()
