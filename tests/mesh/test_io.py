@@ -31,3 +31,27 @@ def test_errors_name_the_file(tmp_path):
         load_mesh(bad)
     with pytest.raises(ValueError, match=r"vertices: expected shape \(N, 3\)"):
         save_mesh(tmp_path / "x.ply", torch.zeros(4, 2), torch.tensor([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off"])
+def test_unused_vertices_and_their_order_survive_a_round_trip(tmp_path, suffix):
+    vertices = torch.tensor([[5.0, 5, 5], [0, 0, 0], [1, 0, 0], [0, 1, 0], [9, 9, 9], [0, 0, 1]])
+    faces = torch.tensor([[3, 1, 2], [1, 5, 2]])  # vertices 0 and 4 are in no face
+    loaded_vertices, loaded_faces = load_mesh(save_mesh(tmp_path / f"m{suffix}", vertices, faces))
+    assert torch.equal(loaded_vertices, vertices)
+    assert torch.equal(loaded_faces, faces)
+
+
+def test_faces_must_index_the_vertices(tmp_path):
+    vertices = torch.rand(6, 3)
+    with pytest.raises(ValueError, match=r"faces: expected vertex indices in \[0, 6\), got values in \[0, 10\]"):
+        save_mesh(tmp_path / "b.ply", vertices, torch.tensor([[0, 1, 10]]))
+    with pytest.raises(ValueError, match="faces: expected an integer tensor"):
+        save_mesh(tmp_path / "f.ply", vertices, torch.tensor([[0.7, 1.2, 2.9]]))
+    assert list(tmp_path.iterdir()) == []
+    bad = tmp_path / "bad.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+                   "3 0 1 2\n3 0 1 9\n")
+    with pytest.raises(ValueError, match=r"bad.ply: faces: expected vertex indices in \[0, 3\), got values in \[0, 9\]"):
+        load_mesh(bad)

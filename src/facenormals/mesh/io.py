@@ -8,14 +8,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_faces, check_shape
 from facenormals.core.files import atomic_write
 
 __all__ = ["load_mesh", "save_mesh"]
 
 
 def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
-    """Write a mesh; the format follows the extension (``.ply``, ``.obj``, ``.stl``, ``.off``, ``.glb``).
+    """Write a mesh; the format follows the extension (``.ply``, ``.obj``, ``.off``, ``.glb``: indexed
+    formats, which :func:`load_mesh` reads back with the same vertices and faces; ``.stl`` stores
+    unindexed triangles and loses the topology).
 
     The file is replaced atomically (:func:`~facenormals.core.atomic_write`): an error midway leaves
     an existing file as it was.
@@ -23,7 +25,7 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
     Args:
         path: output file; its folder is created.
         vertices: ``(N, 3)`` or ``(1, N, 3)`` vertices (mm).
-        faces: ``(F, 3)`` triangles.
+        faces: ``(F, 3)`` integer triangles indexing ``vertices``.
 
     Returns:
         The path written.
@@ -40,7 +42,7 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
         check_shape(vertices, [1, "N", 3], "vertices")
         vertices = vertices[0]
     check_shape(vertices, ["N", 3], "vertices")
-    check_shape(faces, ["F", 3], "faces")
+    check_faces(faces, vertices.shape[0], "faces")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     mesh = trimesh.Trimesh(
@@ -52,10 +54,13 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
 
 
 def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
-    """Read a triangle mesh as ``(vertices (N, 3), faces (F, 3))`` without reordering vertices.
+    """Read a triangle mesh as ``(vertices (N, 3), faces (F, 3))`` without reordering vertices or
+    dropping unused ones, so a mesh written by :func:`save_mesh` in an indexed format keeps its
+    topology (per-vertex correspondence with its model).
 
     Raises:
-        ValueError: naming the file when it is missing, unreadable or not a triangle mesh.
+        ValueError: naming the file when it is missing, unreadable, not a triangle mesh, holds
+            non-finite coordinates or faces indexing missing vertices.
     """
     import trimesh
 
@@ -63,7 +68,7 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     if not path.is_file():
         raise ValueError(f"{path}: mesh file not found")
     try:
-        mesh = trimesh.load(path, process=False, force="mesh")
+        mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
     except Exception as error:  # trimesh raises many types for corrupt files
         raise ValueError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from error
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0 or len(mesh.faces) == 0:
@@ -71,4 +76,9 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype)
     if not bool(torch.isfinite(vertices).all()):
         raise ValueError(f"{path}: mesh has NaN or infinite vertex coordinates")
-    return vertices, torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)
+    faces = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)
+    try:
+        check_faces(faces, len(vertices), "faces")
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+    return vertices, faces
