@@ -69,3 +69,48 @@ def test_faces_and_vertex_count_are_checked():
     jac = VertexNormalsJacobian(faces, tangents)
     with pytest.raises(ValueError, match=rf"vertices: expected shape \(B, {v.shape[0]}, 3\), got \(1, {v.shape[0] + 1}, 3\)"):
         jac(torch.cat([v, v[:1]])[None])
+
+
+def test_subset_rows_match_the_full_jacobian_for_any_index():
+    """Arbitrary order, repeats, and a vertex in no face (zero normal, zero rows)."""
+    v, faces = open_mesh()
+    unused = torch.tensor([[0.3, 0.2, 0.1]], dtype=torch.float64)
+    vertices = torch.cat([v, unused])[None].expand(2, -1, -1) * torch.tensor([1.0, 1.2], dtype=torch.float64)[:, None, None]
+    g = torch.Generator().manual_seed(3)
+    basis = torch.randn(3, vertices.shape[1], 3, generator=g, dtype=torch.float64)
+    jac = VertexNormalsJacobian(faces, basis)
+    full_n, full_dn = jac(vertices)
+    index = torch.tensor([40, 7, 40, v.shape[0], 0, 7])
+    n, dn = jac.subset(index)(vertices)
+    assert_close(n, full_n[:, index])
+    assert_close(dn, full_dn[:, index])
+    assert float(n[:, 3].abs().max()) == 0.0 and float(dn[:, 3].abs().max()) == 0.0
+    empty = jac.subset(index)(vertices[:0])
+    assert empty[0].shape == (0, 6, 3) and empty[1].shape == (0, 6, 3, 3)
+
+
+def test_subset_checks_its_index_and_vertices():
+    v, faces = open_mesh()
+    jac = VertexNormalsJacobian(faces, torch.ones(2, *v.shape, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"vertex_index: expected vertex indices in \[0, 162\), got values in \[-1, 3\]"):
+        jac.subset(torch.tensor([3, -1]))
+    with pytest.raises(ValueError, match=r"vertex_index: expected vertex indices in \[0, 162\), got values in \[5, 162\]"):
+        jac.subset(torch.tensor([5, 162]))
+    with pytest.raises(ValueError, match="vertex_index: expected an integer tensor"):
+        jac.subset(torch.tensor([1.7]))
+    with pytest.raises(ValueError, match=r"vertices: expected shape \(B, 162, 3\), got \(1, 3, 3\)"):
+        jac.subset(torch.tensor([1]))(v[None, :3])
+
+
+def test_values_for_vertices_that_require_grad_and_empty_batches():
+    v, faces = open_mesh()
+    tangents = torch.randn(2, *v.shape, dtype=torch.float64)
+    n, dn = vertex_normals_jvp(v[None].requires_grad_(), faces, tangents)
+    assert not n.requires_grad and not dn.requires_grad
+    assert_close(n, vertex_normals(v[None], faces))
+    n, dn = vertex_normals_jvp(v.new_zeros(0, *v.shape), faces, tangents)
+    assert n.shape == (0, *v.shape) and dn.shape == (0, *v.shape, 2)
+    n, dn = VertexNormalsJacobian(faces, tangents)(v.new_zeros(0, *v.shape))
+    assert dn.shape == (0, *v.shape, 2)
+    with pytest.raises(ValueError, match="tangents: expected a torch.Tensor"):
+        vertex_normals_jvp(v[None], faces, tangents.tolist())

@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_floating, check_shape
+from facenormals.core.check import check_faces, check_floating, check_shape, check_tensor
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -77,13 +77,22 @@ def _jvp_one(
     return n, d_n
 
 
+@torch.no_grad()
 def _jvp(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float) -> tuple[Tensor, Tensor]:
     """Batched: tangent edges ``(F, 3, K)`` shared, or ``(B, F, 3, K)`` per element."""
+    if vertices.shape[0] == 0:
+        num, k = vertices.shape[1], d_e1.shape[-1]
+        return vertices.new_zeros(0, num, 3), vertices.new_zeros(0, num, 3, k)
     outputs = [
         _jvp_one(vertices[b], faces, d_e1 if d_e1.dim() == 3 else d_e1[b], d_e2 if d_e2.dim() == 3 else d_e2[b], eps)
         for b in range(vertices.shape[0])
     ]
     return torch.stack([o[0] for o in outputs]), torch.stack([o[1] for o in outputs])
+
+
+def _check_device(vertices: Tensor, faces: Tensor) -> None:
+    if vertices.device != faces.device:
+        raise ValueError(f"vertices: expected device {faces.device} (the module's), got {vertices.device}")
 
 
 def _check(vertices: Tensor, faces: Tensor) -> dict[str, int]:
@@ -105,7 +114,8 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
 
     Returns:
         ``(normals, jacobian)``: the normals ``(B, N, 3)`` and, in Jacobian layout ``(B, N, 3, K)``,
-        ``jacobian[b, i, :, k]`` :math:`= \partial n_i / \partial \text{tangent}_k`.
+        ``jacobian[b, i, :, k]`` :math:`= \partial n_i / \partial \text{tangent}_k`. Values only:
+        they carry no autograd graph (differentiate :func:`~facenormals.mesh.vertex_normals` instead).
 
     Example:
         >>> v = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
@@ -115,12 +125,14 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
         ([0.0, 0.0, 1.0], [1.0, 1.0, 0.0])
     """
     dims = _check(vertices, faces)
+    check_tensor(tangents, "tangents")
     if tangents.dim() == 3:
         check_shape(tangents, ["K", dims["N"], 3], "tangents")
     else:
         check_shape(tangents, ["B", "K", dims["N"], 3], "tangents", dims)
     faces = faces.to(device=vertices.device, dtype=torch.long)
-    tangents = tangents.to(vertices.dtype)
+    check_floating(tangents, "tangents")
+    tangents = tangents.detach().to(device=vertices.device, dtype=vertices.dtype)
     if tangents.dim() == 3:
         d_e1, d_e2 = _tangent_edges(tangents, faces)
     else:
@@ -132,17 +144,29 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
 class _SubsetJacobian:
     """Normals and Jacobian rows of a vertex subset (see :meth:`VertexNormalsJacobian.subset`)."""
 
-    def __init__(self, faces: Tensor, corners: Tensor, d_e1: Tensor, d_e2: Tensor, size: int, eps: float) -> None:
+    def __init__(self, faces: Tensor, corners: Tensor, d_e1: Tensor, d_e2: Tensor, size: int, eps: float,
+                 num_vertices: int, repeat: Tensor | None) -> None:
         self.faces, self.corners, self.d_e1, self.d_e2, self.size, self.eps = faces, corners, d_e1, d_e2, size, eps
+        self.num_vertices = num_vertices
+        self.repeat = repeat  # rows of the unique vertices giving the requested ones, when some repeat
         self._work: Tensor | None = None  # scratch for the face-normal derivatives, never returned
 
+    @torch.no_grad()
     def __call__(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
+        check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
+        check_floating(vertices, "vertices")
+        _check_device(vertices, self.faces)
         d_e1, d_e2 = self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype)
         if self._work is None or self._work.dtype != d_e1.dtype or self._work.device != d_e1.device:
             self._work = torch.empty_like(d_e1)
-        outputs = [_jvp_one(v, self.faces, d_e1, d_e2, self.eps, self.corners, self.size + 1, self._work)
-                   for v in vertices]
-        return torch.stack([o[0][: self.size] for o in outputs]), torch.stack([o[1][: self.size] for o in outputs])
+        normals = vertices.new_zeros(vertices.shape[0], self.size, 3)
+        jacobian = vertices.new_zeros(vertices.shape[0], self.size, 3, d_e1.shape[-1])
+        for b, v in enumerate(vertices):
+            n, dn = _jvp_one(v, self.faces, d_e1, d_e2, self.eps, self.corners, self.size + 1, self._work)
+            normals[b], jacobian[b] = n[: self.size], dn[: self.size]
+        if self.repeat is not None:
+            normals, jacobian = normals[:, self.repeat], jacobian[:, self.repeat]
+        return normals, jacobian
 
 
 class VertexNormalsJacobian(nn.Module):
@@ -179,12 +203,17 @@ class VertexNormalsJacobian(nn.Module):
     def forward(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
         check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
         check_floating(vertices, "vertices")
+        _check_device(vertices, self.faces)
         return _jvp(vertices, self.faces, self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype), self.eps)
 
     def subset(self, vertex_index: Tensor) -> "_SubsetJacobian":
         """A callable giving normals and Jacobian rows of ``vertex_index`` ``(S,)`` only: ``(B, S, 3)``
         and ``(B, S, 3, K)``. Only the faces around those vertices are processed, which is what a fit
-        needs when it scores only the visible vertices.
+        needs when it scores only the visible vertices. Indices may repeat; a vertex in no face gets
+        a zero normal, as in :meth:`forward`.
+
+        Raises:
+            ValueError: naming ``vertex_index`` unless it is a 1-D integer tensor in ``[0, N)``.
 
         Example:
             >>> from facenormals.models import builtin_head_model
@@ -196,13 +225,22 @@ class VertexNormalsJacobian(nn.Module):
             True
         """
         check_shape(vertex_index, ["S"], "vertex_index")
-        num_vertices = int(self.faces.max()) + 1 if self.faces.numel() else 0
+        if vertex_index.dtype.is_floating_point or vertex_index.dtype.is_complex or vertex_index.dtype == torch.bool:
+            raise ValueError(f"vertex_index: expected an integer tensor, got dtype {vertex_index.dtype}")
         index = vertex_index.to(device=self.faces.device, dtype=torch.long)
-        compact = torch.full((max(num_vertices, 1),), index.shape[0], dtype=torch.long, device=self.faces.device)
+        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= self.num_vertices):
+            raise ValueError(f"vertex_index: expected vertex indices in [0, {self.num_vertices}), got values in "
+                             f"[{int(index.min())}, {int(index.max())}]")
+        unique, repeat = torch.unique(index, return_inverse=True)
+        if unique.shape[0] == index.shape[0]:
+            repeat = None  # all distinct: computed in the caller's order
+        else:
+            index = unique
+        compact = torch.full((self.num_vertices,), index.shape[0], dtype=torch.long, device=self.faces.device)
         compact[index] = torch.arange(index.shape[0], device=self.faces.device)
         selected = (compact[self.faces] < index.shape[0]).any(1)
         return _SubsetJacobian(self.faces[selected], compact[self.faces[selected]], self.d_e1[selected],
-                               self.d_e2[selected], index.shape[0], self.eps)
+                               self.d_e2[selected], index.shape[0], self.eps, self.num_vertices, repeat)
 
     def extra_repr(self) -> str:
         return f"faces={self.faces.shape[0]}, components={self.d_e1.shape[-1]}"
