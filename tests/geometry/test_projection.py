@@ -122,3 +122,13 @@ def test_projection_jacobian_matches_autograd():
             assert_close(J[b, i], ref[b, i, :, b, i])
     with pytest.raises(ValueError, match="camera_points"):
         projection_jacobian(torch.zeros(2, 4, 2), K)
+
+
+def test_projection_jacobian_checks_the_intrinsics():
+    from facenormals.geometry import projection_jacobian
+
+    points = torch.ones(1, 1, 3)
+    with pytest.raises(ValueError, match=r"intrinsics: expected dtype torch.float32 \(the dtype of camera_points\)"):
+        projection_jacobian(points, torch.ones(1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="intrinsics: expected dtype torch.float32"):
+        projection_jacobian(points, torch.ones(1, 3, dtype=torch.long))

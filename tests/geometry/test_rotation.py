@@ -95,3 +95,15 @@ def test_rotation_derivatives_match_autograd():
     for b in range(4):
         for j in range(3):
             assert_close(D[b, j], J[b, :, :, b, j])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_angles_stay_in_the_documented_half_open_range(dtype):
+    """roll and yaw lie in (-π, π]: a half turn is +π, also when atan2 meets a signed zero."""
+    angles = torch.tensor([[math.pi, 0.1, -math.pi]], dtype=dtype)
+    back = rotation_matrix_to_euler(euler_to_rotation_matrix(angles)).double()
+    assert bool((back > -math.pi).all()) and bool((back <= math.pi + 1e-6).all())
+    wrapped = torch.remainder(back - angles.double() + math.pi, 2 * math.pi) - math.pi
+    assert float(wrapped.abs().max()) < 1e-5
+    half_turn = torch.tensor([[[-1.0, 0.0, 0.0], [-0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]], dtype=dtype)  # roll π
+    assert rotation_matrix_to_euler(half_turn)[0, 0].item() == pytest.approx(math.pi)

@@ -289,3 +289,13 @@ def test_bad_inputs():
         module(torch.randn(1, 5, 3))  # N differs from the module's
     with pytest.raises(ValueError, match="vertices: expected shape"):
         module(torch.randn(4, 3))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("mode", ["ring", "area"])
+def test_half_precision_normals_of_head_sized_faces(dtype, mode):
+    """Edges of 20 mm: the squared norm of the face normal (1.6e5) would overflow float16."""
+    vertices = torch.tensor([[[0.0, 0, 0], [20, 0, 0], [0, 20, 0]]], dtype=dtype)
+    normals = vertex_normals(vertices, torch.tensor([[0, 1, 2]]), mode=mode)
+    assert normals.dtype == dtype
+    assert_close(normals.float(), torch.tensor([[[0.0, 0, 1]] * 3]), atol=1e-3, rtol=0)

@@ -24,3 +24,37 @@ def test_normal_map_colours():
     nmap[:, 0, 0] = torch.tensor([0.0, -1.0, 0.0])  # up (y is down)
     img = normal_map_to_image(nmap)
     assert img[0, 0].tolist() == [128, 255, 128] and img[0, 1].tolist() == [0, 0, 0]
+
+
+def test_dots_sit_on_the_pixel_centres():
+    """Pixel (3, 4) of a 16² image upsampled 8× spans columns 24..31 and rows 32..39: its dot is
+    centred at (27.5, 35.5), so a half-pixel convention error (4 upsampled pixels) is caught."""
+    out = draw_alignment(np.zeros((16, 16, 3), np.uint8), torch.tensor([[3.0, 4.0]]), scale=8)
+    brightest = out.sum(2) == out.sum(2).max()
+    rows, cols = np.nonzero(brightest)
+    assert abs(rows.mean() - 35.5) <= 0.5 and abs(cols.mean() - 27.5) <= 0.5
+
+
+def test_points_off_the_image_or_not_finite_are_skipped(tmp_path):
+    image = np.zeros((8, 8, 3), np.uint8)
+    points = torch.tensor([[float("nan"), 1.0], [float("inf"), 2.0], [1e12, 3.0], [-5e11, 1e11], [2.0, 2.0]])
+    out = draw_alignment(image, points, torch.tensor([[1e12, 1e12], [4.0, 4.0]]), scale=4)
+    only_inside = draw_alignment(image, points[4:], torch.tensor([[4.0, 4.0]]), scale=4)
+    assert np.array_equal(out, only_inside) and out.sum() > 0
+
+
+def test_overlay_argument_checks(tmp_path):
+    image = np.zeros((8, 8, 3), np.uint8)
+    points = torch.tensor([[1.0, 1.0], [2.0, 2.0]])
+    with pytest.raises(ValueError, match="visible: expected a bool mask, got dtype torch.int64"):
+        draw_alignment(image, points, visible=torch.tensor([1, 0]))
+    with pytest.raises(ValueError, match=r"visible: expected shape \(2,\), got \(3,\)"):
+        draw_alignment(image, points, visible=torch.tensor([True, False, True]))
+    with pytest.raises(ValueError, match=r"landmark_pixels: expected shape \(L, 2\) \(2 dimensions\), got \(3,\)"):
+        draw_alignment(image, points, landmark_pixels=torch.zeros(3))
+    with pytest.raises(ValueError, match="scale: expected an integer >= 1"):
+        draw_alignment(image, points, scale=0)
+    with pytest.raises(OSError, match="o.unknown: cannot write the overlay"):
+        draw_alignment(image, points, path=tmp_path / "o.unknown")
+    assert list(tmp_path.iterdir()) == []
+    assert draw_alignment(image, points, visible=torch.tensor([True, False])).sum() > 0

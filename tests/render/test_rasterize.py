@@ -99,7 +99,9 @@ def test_behind_camera_skipped_and_batch():
         (dict(faces=torch.zeros(1, 3)), "faces: expected an integer tensor"),
         (dict(faces=torch.ones(1, 3, dtype=torch.bool)), "faces: expected an integer tensor"),
         (dict(faces=torch.tensor([[0, 1, 3]])), r"faces: expected vertex indices in \[0, 3\), got values in \[0, 3\]"),
-        (dict(image_size=(0, 4)), "image_size"),
+        (dict(image_size=(0, 4)), r"image_size: expected \(H, W\), two integers >= 1, got \(0, 4\)"),
+        (dict(image_size=(4.5, 4)), r"image_size: expected \(H, W\), two integers >= 1, got \(4.5, 4\)"),
+        (dict(image_size=4), r"image_size: expected \(H, W\)"),
     ],
 )
 @pytest.mark.parametrize("fn", [rasterize_triangles, rasterize_depth])
@@ -118,6 +120,8 @@ def test_interpolation_checks_the_faces():
         interpolate_vertex_attributes(frags, torch.tensor([[0, 1, 2], [1, 4, 2]]), torch.ones(1, 4, 2))
     with pytest.raises(ValueError, match="faces: expected the 2 or more triangles"):
         interpolate_vertex_attributes(frags, faces[:1], torch.ones(1, 4, 2))
+    with pytest.raises(ValueError, match="attributes: expected a floating-point tensor, got dtype torch.int64"):
+        interpolate_vertex_attributes(frags, faces, torch.tensor([[[10], [20], [30], [40]]]))
 
 
 @pytest.mark.parametrize("cull", [False, True])

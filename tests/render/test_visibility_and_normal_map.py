@@ -102,3 +102,16 @@ def test_splat_zbuffer_ignores_points_that_project_nowhere():
         splat_zbuffer(pixels, depth, (0, 8))
     with pytest.raises(ValueError, match="depth: expected a floating-point tensor"):
         splat_zbuffer(pixels, depth.long(), (8, 8))
+    with pytest.raises(ValueError, match="radius: expected an integer, got float 1.5"):
+        splat_zbuffer(pixels, depth, (8, 8), radius=1.5)
+    with pytest.raises(ValueError, match="radius: expected an integer >= 0, got -1"):
+        splat_zbuffer(pixels, depth, (8, 8), radius=-1)
+
+
+def test_given_normals_must_match_the_vertices(posed_head):
+    model, vertices, R, t, K = posed_head
+    normals = vertex_normals(vertices, model.faces)
+    nmap, _ = render_normal_map(vertices, model.faces, R, t, K, (32, 32), normals=normals)
+    assert nmap.dtype == torch.float64
+    with pytest.raises(ValueError, match=r"normals: expected dtype torch.float64 \(the dtype of vertices\), got torch.float32"):
+        render_normal_map(vertices, model.faces, R, t, K, (32, 32), normals=normals.float())

@@ -9,7 +9,7 @@ shape and the received one, e.g.::
 from __future__ import annotations
 
 import math
-from numbers import Real
+from numbers import Integral, Real
 from typing import Sequence
 
 import torch
@@ -19,6 +19,8 @@ __all__ = [
     "check_faces",
     "check_finite",
     "check_floating",
+    "check_image_size",
+    "check_integer",
     "check_nonnegative",
     "check_same_dims",
     "check_same_dtype_device",
@@ -189,3 +191,40 @@ def check_nonnegative(value: object, name: str) -> float:
     if not math.isfinite(number) or number < 0:
         raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
     return number
+
+
+def check_integer(value: object, name: str, minimum: int | None = None) -> int:
+    """Return ``value`` as an ``int``, raising ``ValueError`` unless it is an integer (not a bool, not
+    a float) of at least ``minimum``.
+
+    Example:
+        >>> check_integer(3, "radius", minimum=0)
+        3
+        >>> check_integer(1.5, "radius")
+        Traceback (most recent call last):
+        ...
+        ValueError: radius: expected an integer, got float 1.5
+    """
+    if isinstance(value, bool) or not isinstance(value, Integral):
+        raise ValueError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value}")
+    return int(value)
+
+
+def check_image_size(image_size: object, name: str = "image_size") -> tuple[int, int]:
+    """Return ``(H, W)``, raising ``ValueError`` unless ``image_size`` is a pair of positive integers.
+
+    Example:
+        >>> check_image_size((128, 96))
+        (128, 96)
+        >>> check_image_size((128.7, 96))
+        Traceback (most recent call last):
+        ...
+        ValueError: image_size: expected (H, W), two integers >= 1, got (128.7, 96)
+    """
+    try:
+        height, width = image_size  # type: ignore[misc]
+        return check_integer(height, name, 1), check_integer(width, name, 1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected (H, W), two integers >= 1, got {image_size!r}") from None

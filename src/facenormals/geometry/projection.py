@@ -129,6 +129,7 @@ def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 
     dims = check_shape(camera_points, ["B", "N", 3], "camera_points")
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_floating(camera_points, "camera_points")
+    check_same_dtype_device(camera_points, "camera_points", intrinsics=intrinsics)
     x, y, z = camera_points.unbind(-1)
     z = torch.where(z.abs() < eps, torch.full_like(z, eps) * torch.where(z < 0, -1.0, 1.0), z)
     scale = intrinsics[:, None, 0] / z

@@ -13,6 +13,8 @@ views (yaw = ±90°) keep unique angles. See ``docs/conventions.md`` for the sig
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -141,4 +143,5 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
     pitch = torch.atan2(-r12, torch.sqrt(r10 * r10 + r11 * r11))
     roll = torch.atan2(r10, r11)
     yaw = torch.atan2(rotation[:, 0, 2], rotation[:, 2, 2])
-    return torch.stack([roll, pitch, yaw], dim=-1)
+    angles = torch.stack([roll, pitch, yaw], dim=-1)
+    return torch.where(angles <= -math.pi, -angles, angles)  # atan2(-0.0, x < 0) = -π: keep (-π, π]

@@ -70,7 +70,10 @@ def _check_vertices(vertices: object, num_vertices: int | None = None) -> None:
 def _normalise(x: Tensor, eps: float) -> Tensor:
     """``x / max(|x|, eps)`` over dim 1 of size 3, written out per component (faster than
     :func:`torch.nn.functional.normalize` on this layout). The clamp keeps the value and the
-    gradient finite at ``x = 0``."""
+    gradient finite at ``x = 0``. Half precision is normalised in float32: the squared norm of a
+    face of 20 mm edges (1.6e5) overflows float16."""
+    if x.dtype in (torch.float16, torch.bfloat16):
+        return _normalise(x.float(), eps).to(x.dtype)
     a, b, c = x.unbind(1)
     eps2 = max(eps * eps, torch.finfo(x.dtype).tiny)
     return x * (a * a + b * b + c * c).clamp_min(eps2).rsqrt().unsqueeze(1)

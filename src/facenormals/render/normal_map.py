@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_same_dtype_device, check_shape
 from facenormals.geometry.projection import project_points
 from facenormals.mesh import vertex_normals
 from facenormals.render.rasterize import Fragments, interpolate_vertex_attributes, rasterize_triangles
@@ -55,6 +55,7 @@ def render_normal_map(
     if normals is None:
         normals = vertex_normals(vertices, faces)
     check_shape(normals, ["B", "N", 3], "normals", dims)
+    check_same_dtype_device(vertices, "vertices", normals=normals)
     pixels, depth = project_points(vertices, rotation, translation, intrinsics)
     fragments = rasterize_triangles(pixels, depth, faces, image_size)
     camera_normals = torch.matmul(normals, rotation.transpose(1, 2))

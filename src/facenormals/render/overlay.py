@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_shape
+from facenormals.core.files import atomic_write
 
 __all__ = ["draw_alignment", "normal_map_to_image"]
 
@@ -45,7 +46,8 @@ def draw_alignment(
 
     Args:
         image: ``(H, W, 3)`` or ``(H, W)`` uint8 RGB image.
-        vertex_pixels: ``(N, 2)`` projected vertices in the image's pixel coordinates.
+        vertex_pixels: ``(N, 2)`` projected vertices in the image's pixel coordinates (non-finite
+            rows and points far outside the image, e.g. of vertices behind the camera, are skipped).
         landmark_pixels: optional ``(L, 2)`` landmarks (NaN rows are skipped).
         visible: optional ``(N,)`` bool: only visible vertices are drawn.
         path: if given, the overlay is written there as PNG.
@@ -54,10 +56,22 @@ def draw_alignment(
 
     Returns:
         The ``(scale·H, scale·W, 3)`` RGB overlay.
+
+    Raises:
+        ValueError: naming the argument of a wrong shape or dtype.
+        OSError: naming ``path`` when the PNG cannot be written.
     """
     import cv2
 
-    check_shape(vertex_pixels, ["N", 2], "vertex_pixels")
+    dims = check_shape(vertex_pixels, ["N", 2], "vertex_pixels")
+    if visible is not None:
+        check_shape(visible, [dims["N"]], "visible")
+        if visible.dtype != torch.bool:
+            raise ValueError(f"visible: expected a bool mask, got dtype {visible.dtype}")
+    if landmark_pixels is not None:
+        check_shape(landmark_pixels, ["L", 2], "landmark_pixels")
+    if not (isinstance(scale, int) and scale >= 1):
+        raise ValueError(f"scale: expected an integer >= 1, got {scale!r}")
     img = np.asarray(image)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
@@ -69,14 +83,32 @@ def draw_alignment(
         points = points[visible.detach().cpu()]
     if points.shape[0] > max_points:
         points = points[torch.linspace(0, points.shape[0] - 1, max_points).long()]
-    # pixel centres: pixel (0, 0) covers [-0.5, 0.5]; the upsampled centre is scale * (u + 0.5) - 0.5
-    for u, v in ((points + 0.5) * scale - 0.5).round().long().tolist():
+    for u, v in _on_canvas(points, scale, img.shape[:2]):
         cv2.circle(out, (u, v), max(1, scale // 4), (255, 220, 0), -1, lineType=cv2.LINE_AA)
     if landmark_pixels is not None:
-        for u, v in ((landmark_pixels.detach().cpu().double() + 0.5) * scale - 0.5).tolist():
-            if np.isfinite(u) and np.isfinite(v):
-                cv2.circle(out, (int(round(u)), int(round(v))), scale, (255, 60, 60), 2, lineType=cv2.LINE_AA)
+        for u, v in _on_canvas(landmark_pixels.detach().cpu().double(), scale, img.shape[:2]):
+            cv2.circle(out, (u, v), scale, (255, 60, 60), 2, lineType=cv2.LINE_AA)
     if path is not None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(path), cv2.cvtColor(out, cv2.COLOR_RGB2BGR))
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path) as part:
+            try:
+                written = cv2.imwrite(str(part), cv2.cvtColor(out, cv2.COLOR_RGB2BGR))
+            except cv2.error:  # no writer for the suffix
+                written = False
+            if not written:
+                raise OSError(f"{path}: cannot write the overlay (a .png or other image suffix is needed)")
     return out
+
+
+def _on_canvas(points: Tensor, scale: int, size: tuple[int, int]) -> list[list[int]]:
+    """Upsampled integer centres of the finite ``points`` that land on or near the canvas.
+
+    Pixel (0, 0) covers [-0.5, 0.5]; its upsampled centre is ``scale * (u + 0.5) - 0.5``.
+    """
+    centres = (points + 0.5) * scale - 0.5
+    margin = 2 * scale  # a circle centred just outside still shows its edge
+    inside = torch.isfinite(centres).all(1)
+    inside &= (centres[:, 0] > -margin) & (centres[:, 0] < size[1] * scale + margin)
+    inside &= (centres[:, 1] > -margin) & (centres[:, 1] < size[0] * scale + margin)
+    return centres[inside].round().long().tolist()

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_faces, check_floating, check_shape
+from facenormals.core.check import check_faces, check_floating, check_image_size, check_shape
 
 __all__ = ["Fragments", "interpolate_vertex_attributes", "rasterize_depth", "rasterize_triangles"]
 
@@ -54,9 +54,7 @@ def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_siz
     check_faces(faces, dims["N"])
     check_floating(pixels, "pixels")
     check_floating(depth, "depth")
-    height, width = int(image_size[0]), int(image_size[1])
-    if height <= 0 or width <= 0:
-        raise ValueError(f"image_size: expected positive (H, W), got {image_size}")
+    height, width = check_image_size(image_size)
     return dims["B"], height, width
 
 
@@ -205,6 +203,7 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
         torch.Size([1, 2, 10, 10])
     """
     dims = check_shape(attributes, ["B", "N", "C"], "attributes")
+    check_floating(attributes, "attributes")  # barycentric weights would round to 0 or 1
     check_shape(fragments.face_index, ["B", "H", "W"], "fragments.face_index", dims)
     count = check_faces(faces, dims["N"])["F"]
     if fragments.face_index.numel() and int(fragments.face_index.max()) >= count:

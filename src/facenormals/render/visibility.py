@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_image_size, check_integer, check_shape
 
 __all__ = ["splat_zbuffer", "unoccluded_points", "visible_vertices"]
 
@@ -126,9 +126,8 @@ def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], ra
     check_shape(depth, ["B", "N"], "depth", dims)
     check_floating(pixels, "pixels")
     check_floating(depth, "depth")
-    height, width = int(image_size[0]), int(image_size[1])
-    if height <= 0 or width <= 0:
-        raise ValueError(f"image_size: expected positive (H, W), got {tuple(image_size)}")
+    height, width = check_image_size(image_size)
+    radius = check_integer(radius, "radius", minimum=0)
     batch = dims["B"]
     u, v = _nearest_pixel(pixels)
     ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0) & torch.isfinite(depth)

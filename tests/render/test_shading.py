@@ -1,0 +1,58 @@
+import math
+
+import pytest
+import torch
+
+from facenormals.models import builtin_head_model
+from facenormals.render import render_shaded, shade_normal_map
+
+
+def test_lambert_against_a_loop_and_background_stays_black():
+    g = torch.Generator().manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(2, 3, 4, 5, generator=g, dtype=torch.float64), dim=1)
+    n[:, :, 0, 0] = 0.0  # background
+    light, ambient = (0.2, -0.4, -1.0), 0.1
+    shaded = shade_normal_map(n, light, ambient)
+    assert shaded.shape == (2, 1, 4, 5) and shaded.dtype == torch.float64
+    norm = math.sqrt(sum(c * c for c in light))
+    for b in range(2):
+        for i in range(4):
+            for j in range(5):
+                normal = n[b, :, i, j].tolist()
+                if (i, j) == (0, 0):
+                    expected = 0.0
+                else:
+                    lambert = max(0.0, sum(a * c / norm for a, c in zip(normal, light)))
+                    expected = ambient + (1 - ambient) * lambert
+                assert shaded[b, 0, i, j].item() == pytest.approx(expected, abs=1e-12)
+
+
+def test_the_default_light_comes_from_the_upper_right_in_front():
+    tilt = 0.5  # normals facing the camera (-z), tilted towards image right (+x), left, up (-y), down
+    n = torch.tensor([[tilt, 0, -1], [-tilt, 0, -1], [0, -tilt, -1], [0, tilt, -1]])
+    n = torch.nn.functional.normalize(n, dim=1).T.reshape(1, 3, 1, 4)
+    right, left, up, down = shade_normal_map(n)[0, 0, 0].tolist()
+    assert right > left and up > down
+
+
+def test_render_shaded_lights_a_head_facing_the_camera():
+    model = builtin_head_model()
+    rotation = torch.eye(3)[None]  # the model frame shows the face frontally (docs/conventions.md)
+    image = render_shaded(model.mean[None], model.faces, rotation, torch.tensor([[0.0, 0.0, 600.0]]),
+                          torch.tensor([[100.0, 32.0, 32.0]]), (64, 64))
+    assert image.shape == (1, 1, 64, 64)
+    assert float(image[0, 0, 32, 32]) > 0.5 and float(image[0, 0, 0, 0]) == 0.0
+
+
+def test_shading_checks_its_arguments():
+    n = torch.zeros(1, 3, 2, 2)
+    with pytest.raises(ValueError, match=r"normal_map: expected shape \(B, 3, H, W\) \(4 dimensions\), got \(3, 4, 4\)"):
+        shade_normal_map(torch.zeros(3, 4, 4))
+    with pytest.raises(ValueError, match="normal_map: expected a floating-point tensor"):
+        shade_normal_map(n.long())
+    with pytest.raises(ValueError, match="light: expected a non-zero finite direction"):
+        shade_normal_map(n, light=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="light: expected a non-zero finite direction"):
+        shade_normal_map(n, light=(0.0, 1.0))
+    with pytest.raises(ValueError, match=r"ambient: expected a value in \[0, 1\]"):
+        shade_normal_map(n, ambient=1.5)
