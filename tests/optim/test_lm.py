@@ -258,7 +258,7 @@ def test_bad_elements_do_not_spoil_the_batch():
         assert result.iterations[b] == alone.iterations[0]
 
     assert result.status[NAN_ROW] == LMStatus.FAILED
-    assert result.reasons[NAN_ROW] == "non-finite residuals at x0"
+    assert result.reasons[NAN_ROW] == "non-finite residuals or cost at x0"
     assert torch.equal(result.x[NAN_ROW], x0[NAN_ROW])  # frozen
     assert result.iterations[NAN_ROW] == 0
 
@@ -402,10 +402,43 @@ def test_damping_exceeded_max_damping():
 
     result = levenberg_marquardt(residual, x0, max_damping=1e3)
     assert result.status.tolist() == [LMStatus.FAILED, LMStatus.CONVERGED]
-    assert result.reasons[0] == "damping exceeded max_damping"
+    assert result.reasons[0] == "non-finite residuals at every trial step"
     assert torch.equal(result.x[0], x0[0])
     assert result.damping[0] > 1e3
     assert_close(result.x[1], torch.ones(2, dtype=F64), atol=1e-8, rtol=0)
+
+    # A wrong (sign-flipped) Jacobian: every step goes uphill, trials are finite but rejected.
+    uphill = levenberg_marquardt(rosenbrock, x0, jacobian_fn=lambda x: -torch.func.vmap(torch.func.jacfwd(
+        lambda z: rosenbrock(z[None])[0]))(x), max_damping=1e3)
+    assert uphill.reasons == ["damping exceeded max_damping"] * 2
+    assert torch.equal(uphill.x, x0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("start", [(1.0, 2.0), (0.0, 0.0)])
+def test_steps_blocked_by_non_finite_residuals_are_not_convergence(dtype, start):
+    """Finite only at x0, default options: the shrinking rejected steps must not pass for a small
+    step (it would report CONVERGED at a point with a large gradient, depending on |x0|)."""
+    x0 = torch.tensor([start], dtype=dtype)
+
+    def residual(x):
+        return torch.where((x == x0).all(-1, keepdim=True), rosenbrock(x), float("nan"))
+
+    result = levenberg_marquardt(residual, x0)
+    assert result.status.tolist() == [LMStatus.FAILED]
+    assert result.reasons == ["non-finite residuals at every trial step"]
+    assert torch.equal(result.x, x0)
+
+
+def test_solver_option_and_dtype_checks():
+    x0 = torch.tensor([[-1.2, 1.0]])
+    with pytest.raises(ValueError, match="x0: expected a float32 or float64 tensor, got dtype torch.float16"):
+        levenberg_marquardt(rosenbrock, x0.half())
+    for bad in (0, -1, 2.5, "a", True):
+        with pytest.raises(ValueError, match="chunk_size: expected None or an integer >= 1"):
+            levenberg_marquardt(rosenbrock, x0, chunk_size=bad)
+    overflow = levenberg_marquardt(lambda x: x * 1e20, torch.ones(1, 2))  # finite residuals, ½‖r‖² overflows
+    assert overflow.reasons == ["non-finite residuals or cost at x0"]
 
 
 def test_zero_gradient_at_start_converges_immediately():

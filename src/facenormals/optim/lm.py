@@ -26,7 +26,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
+from facenormals.core.check import check_finite, check_nonnegative, check_shape
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
 
@@ -39,7 +39,8 @@ class LMStatus(enum.IntEnum):
     MAX_ITERATIONS = 1
     """The element was still improving when ``max_iterations`` was reached."""
     FAILED = 2
-    """The element could not be solved (non-finite residuals or Jacobian, runaway damping)."""
+    """The element could not be solved (non-finite residuals or Jacobian, runaway damping, or every
+    trial step, however short, leaving the residuals' domain)."""
 
 
 # Reason codes, used as an integer tensor inside the loop (no host syncs) and turned into strings
@@ -50,11 +51,12 @@ _REASONS: tuple[tuple[LMStatus, str], ...] = (
     (LMStatus.CONVERGED, "relative cost reduction below ftol"),
     (LMStatus.CONVERGED, "step below xtol"),
     (LMStatus.CONVERGED, "step below floating-point resolution"),
-    (LMStatus.FAILED, "non-finite residuals at x0"),
+    (LMStatus.FAILED, "non-finite residuals or cost at x0"),
     (LMStatus.FAILED, "non-finite Jacobian"),
     (LMStatus.FAILED, "damping exceeded max_damping"),
+    (LMStatus.FAILED, "non-finite residuals at every trial step"),
 )
-_GTOL, _FTOL, _XTOL, _RESOLUTION, _BAD_X0, _BAD_JACOBIAN, _DAMPING = range(1, 8)
+_GTOL, _FTOL, _XTOL, _RESOLUTION, _BAD_X0, _BAD_JACOBIAN, _DAMPING, _BLOCKED = range(1, 9)
 
 
 @dataclass(repr=False)
@@ -210,15 +212,20 @@ def levenberg_marquardt(
     - the gradient :math:`\lVert g \rVert_\infty \le` ``gtol`` (at ``x0`` or after an accepted step),
     - a step (accepted or rejected) is small, :math:`\lVert\delta\rVert \le`
       ``xtol`` :math:`(\lVert x\rVert +` ``xtol``:math:`)`, or leaves ``x`` bit-for-bit unchanged
-      (below the floating-point resolution, which ends float32 runs near the noise floor),
+      (below the floating-point resolution, which ends float32 runs near the noise floor), unless
+      a trial since the last accepted step had non-finite residuals (see below),
     - an accepted step with :math:`\rho > 1/4` reduces the cost by at most ``ftol`` times the cost,
       or (MINPACK's test, for accepted and rejected steps alike) both the predicted reduction and the
       absolute actual change are at most ``ftol`` times the cost with :math:`\rho \le 2`: near a
       minimum of a slightly noisy or piecewise-smooth cost (a sampled image, a changing mask) the
       steps then stop, instead of being rejected until ``max_iterations`` while the damping grows;
 
-    with :attr:`LMStatus.FAILED` when its residuals are not finite at ``x0``, its Jacobian is not
-    finite at an accepted point, or its damping exceeds ``max_damping``; and with
+    with :attr:`LMStatus.FAILED` when its residuals (or the cost ½‖r‖²) are not finite at ``x0``,
+    its Jacobian is not finite at an accepted point, its damping exceeds ``max_damping``, or its steps
+    shrink to nothing while trials since the last accepted step left the residuals' domain (reason
+    "non-finite residuals at every trial step": the element is stuck at the edge of the domain
+    where its residuals are finite, with the cost still falling beyond it, which is no minimum);
+    and with
     :attr:`LMStatus.MAX_ITERATIONS` otherwise. :attr:`LMResult.reasons` says which.
 
     **Batch independence.** Row ``b`` of ``residual_fn(x)`` must depend on ``x[b]`` only (the
@@ -256,7 +263,7 @@ def levenberg_marquardt(
     Args:
         residual_fn: maps ``x`` of shape ``(B, P)`` to residuals of shape ``(B, M)`` with the dtype
             and device of ``x0``; row ``b`` may depend only on ``x[b]``.
-        x0: the starting points, a finite floating tensor of shape ``(B, P)``. Dtype and device of
+        x0: the starting points, a finite float32 or float64 tensor of shape ``(B, P)``. Dtype and device of
             all computations and results follow it.
         jacobian_fn: optional analytic Jacobian, mapping ``x`` ``(B, P)`` to
             :math:`\partial r / \partial x` of shape ``(B, M, P)``. Autograd is used without it.
@@ -323,10 +330,13 @@ def levenberg_marquardt(
     if jacobian_fn is not None and normal_equations_fn is not None:
         raise ValueError("normal_equations_fn: expected at most one of jacobian_fn and normal_equations_fn")
     dims = check_shape(x0, ["B", "P"], "x0")
-    check_floating(x0, "x0")
+    if x0.dtype not in (torch.float32, torch.float64):  # the batched Cholesky needs them
+        raise ValueError(f"x0: expected a float32 or float64 tensor, got dtype {x0.dtype}")
     if dims["B"] < 1 or dims["P"] < 1:
         raise ValueError(f"x0: expected at least one batch element and one parameter, got {tuple(x0.shape)}")
     check_finite(x0, "x0")
+    if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1):
+        raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
     if jacobian_dtype is not None and not (isinstance(jacobian_dtype, torch.dtype) and jacobian_dtype.is_floating_point):
         raise ValueError(f"jacobian_dtype: expected a floating torch.dtype or None, got {jacobian_dtype!r}")
     with torch.no_grad():
@@ -411,6 +421,7 @@ def _solve(
         return 0.5 * r_.square().sum(-1)
 
     code = torch.zeros(B, dtype=torch.long, device=device)
+    edge = torch.zeros(B, dtype=torch.bool, device=device)  # rejected for non-finite residuals since the last accepted step
 
     def stop(active_: Tensor, mask: Tensor, reason: int) -> Tensor:
         """Record ``reason`` for active elements in ``mask``; return the new active mask."""
@@ -490,6 +501,9 @@ def _solve(
         rejected = active & ~accepted
 
         # Convergence tests on this step.
+        # A step shrunk to nothing by rejections at the edge of the residuals' domain (non-finite
+        # trials since the last accepted step) shows no minimum: that is reported as blocked.
+        edge = torch.where(accepted, False, edge | (active & ~trial_ok))
         small_step = step.norm(dim=-1) <= xtol * (x.norm(dim=-1) + xtol)
         no_move = (x_trial == x).all(-1)
         small_reduction = accepted & (actual <= ftol * cost) & (rho > 0.25)
@@ -507,10 +521,13 @@ def _solve(
         lam = torch.where(rejected, lam.clamp_min(min_damping) * nu, lam)
         nu = torch.where(accepted, 2.0, torch.where(rejected, 2.0 * nu, nu))
 
+        active = stop(active, (small_step | no_move) & edge, _BLOCKED)
         active = stop(active, small_step, _XTOL)
         active = stop(active, no_move, _RESOLUTION)
         active = stop(active, small_reduction, _FTOL)
-        active = stop(active, rejected & ~(lam <= max_damping), _DAMPING)
+        runaway = rejected & ~(lam <= max_damping)
+        active = stop(active, runaway & edge, _BLOCKED)
+        active = stop(active, runaway, _DAMPING)
 
         need_jacobian = accepted & active
         flags = torch.stack([need_jacobian.any(), active.any()]).tolist()
