@@ -89,3 +89,53 @@ def test_evaluate_command(tmp_path, capsys):
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(outside)]) == 1
     assert f"{outside}: expected vertex indices in [0, {model.num_vertices}) of {pred}, got {{'chin': 10000000}}" \
         in capsys.readouterr().err
+
+
+def test_library_errors_and_ctrl_c_are_one_line_and_an_exit_status(monkeypatch, capsys):
+    import facenormals.cli as cli
+
+    def fail(error):
+        def command(args):
+            raise error
+        return command
+
+    for error, status in ((RuntimeError("no headless OpenGL"), 1), (FloatingPointError("loss is not finite"), 1),
+                          (KeyboardInterrupt(), 130)):
+        monkeypatch.setattr(cli, "_cmd_demo", fail(error))
+        assert main(["demo", "--out", "unused"]) == status
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("facenormals demo: ")
+        assert ("interrupted" in err) == (status == 130)
+    monkeypatch.setenv("FACENORMALS_TRACEBACK", "1")
+    monkeypatch.setattr(cli, "_cmd_demo", fail(RuntimeError("boom")))
+    with pytest.raises(RuntimeError, match="boom"):
+        main(["demo", "--out", "unused"])
+
+
+def test_train_refuses_a_bad_export_path_before_training(tmp_path, capsys):
+    log = tmp_path / "log.csv"
+    log.write_text("step,loss\n")
+    (tmp_path / "afile").write_text("x")
+    cases = [(log, "exists and is not a facenormals weight file"), (tmp_path / "afile" / "w.pt", "is a file, not a folder"),
+             (tmp_path, "is a folder"), (tmp_path / "run" / "last.pt", "is the run's checkpoint")]
+    for export, message in cases:
+        status = main(["train", "--data", str(tmp_path / "no-data"), "--out", str(tmp_path / "run"), "--steps", "1",
+                       "--export", str(export), "--quiet"])
+        err = capsys.readouterr().err
+        assert status == 1 and f"--export: {export}" in err and message in err, err
+    assert log.read_text() == "step,loss\n" and not (tmp_path / "run").exists()
+
+
+def test_train_stopped_by_a_signal_exits_130_without_exporting(tmp_path, monkeypatch, capsys):
+    import facenormals.training as training
+    from facenormals.training import TrainSummary
+
+    def stopped(config, progress=True):
+        return TrainSummary(step=3, samples_seen=12, finished=False, stopped_by="signal", seconds=1.0, metrics=None,
+                            checkpoint=tmp_path / "run" / "last.pt")
+
+    monkeypatch.setattr(training, "train", stopped)
+    status = main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--steps", "10",
+                   "--export", str(tmp_path / "w.pt"), "--quiet"])
+    assert status == 130 and not (tmp_path / "w.pt").exists()
+    assert "interrupted: rerun the same command to resume (and export)" in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 from typing import Sequence
 
 __all__ = ["main"]
@@ -150,13 +151,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
     fields = TrainConfig.__dataclass_fields__
     values = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
     config = TrainConfig(**values)
+    if args.export:
+        _check_export_path(Path(args.export), Path(config.out))
     summary = train(config, progress=not args.quiet)
     if int(os.environ.get("RANK", "0")) != 0:  # under torchrun only rank 0 reports and exports
-        return 0
+        return 130 if summary.stopped_by == "signal" else 0
     print(f"{summary.checkpoint}: step {summary.step}/{config.steps}, {summary.samples_seen} samples seen "
           f"(stopped by {summary.stopped_by}, {summary.seconds / 60:.1f} min)")
     if summary.metrics is not None:
         print(f"held out: {summary.metrics}")
+    if summary.stopped_by == "signal":  # a half-trained network must not pass for a finished one
+        print("interrupted: rerun the same command to resume" + (" (and export)" if args.export else ""),
+              file=sys.stderr)
+        return 130
     if args.export:
         from torch.utils.data import Subset
 
@@ -167,6 +174,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
         path = export_weights(summary.checkpoint, args.export, calibration_data=tail)
         print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
     return 0
+
+
+def _check_export_path(path: Path, out: Path) -> None:
+    """Refuse, before training, an --export path that cannot be written or would destroy a file."""
+    from facenormals.nn import load_weights
+
+    if path.resolve() == (out / "last.pt").resolve():
+        raise ValueError(f"--export: {path} is the run's checkpoint; writing the weights over it would lose the "
+                         "training state, choose another file")
+    if path.is_dir():
+        raise ValueError(f"--export: {path} is a folder; give a file name such as {path / 'weights.pt'}")
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"--export: {path} cannot be written: {blocking} is a file, not a folder")
+    if path.exists():
+        try:
+            load_weights(path)
+        except ValueError:
+            raise ValueError(f"--export: {path} exists and is not a facenormals weight file; refusing to overwrite "
+                             "it (remove it or choose another name)") from None
 
 
 def _parse_box(text: str) -> tuple[float, float, float, float]:
@@ -194,7 +221,9 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="facenormals", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="facenormals", description=__doc__,
+        epilog="Errors print one line and exit 1 (set FACENORMALS_TRACEBACK=1 for the traceback); Ctrl-C exits 130.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="recover a random synthetic head from its normal map and landmarks")
     demo.add_argument("--model", default="auto", help="ict, builtin, auto (default) or a model .npz path")
@@ -283,7 +312,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except (ValueError, OSError) as error:
+    except KeyboardInterrupt:
+        print(f"facenormals {args.command}: interrupted (files already written are kept; rerun to resume "
+              "where that applies)", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, RuntimeError, ArithmeticError) as error:
+        if os.environ.get("FACENORMALS_TRACEBACK"):
+            raise
         print(f"facenormals {args.command}: error: {error}", file=sys.stderr)
         return 1
 

@@ -201,3 +201,27 @@ def test_export_refuses_to_overwrite_its_checkpoint(tmp_path):
     with pytest.raises(ValueError, match="out: .*last.pt is the checkpoint being exported"):
         export_weights(summary.checkpoint, summary.checkpoint)
     assert load_checkpoint(summary.checkpoint)["step"] == 1
+
+
+def test_an_error_with_worker_processes_exits_instead_of_hanging(tmp_path):
+    """The DataLoader workers ignore stop signals; an exception leaving ``train`` must still let the
+    interpreter exit (it used to wait forever for the workers at exit)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = (
+        "import sys\n"
+        "from facenormals.training import TrainConfig, train\n"
+        "from tests.training.conftest import TinyHeads\n"
+        "config = TrainConfig(data='unused', out=sys.argv[1], steps=3, batch_size=4, lr=1e30, warmup_steps=1,\n"
+        "    workers=1, device='cpu', precision='fp32', log_every=1, checkpoint_every=100, eval_every=100,\n"
+        "    eval_samples=4, base_channels=4, depth=2, seed=3)\n"
+        "train(config, TinyHeads(8), progress=False)\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "run")], cwd=root, capture_output=True,
+                          text=True, timeout=120, env={**__import__("os").environ, "PYTHONPATH": str(root)})
+    assert done.returncode == 1
+    assert "FloatingPointError: step 1: the loss is not finite" in done.stderr
+    assert "resume from" not in done.stderr  # no checkpoint was written to resume from

@@ -236,6 +236,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     running: dict[str, float] = {}
     window_steps = 0  # steps summed in ``running`` (fewer than log_every in the first window of a resumed run)
     already_finished = step >= config.steps  # a rerun of a finished run writes nothing
+    batches = None
     try:
         batches = iter(loader)
         while step < config.steps:
@@ -262,8 +263,10 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             if ctx.distributed:
                 torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
             if flags[2]:
-                raise FloatingPointError(f"step {step}: the loss is not finite on some rank ({float(loss)} here); "
-                                         f"lower --lr or resume from the last checkpoint {last}")
+                advice = (f"lower --lr, or resume from the last checkpoint {last} (step "
+                          f"{load_checkpoint(last)['step']})" if last.is_file() else "lower --lr")
+                raise FloatingPointError(f"step {step}: the loss is not finite on some rank ({float(loss.detach())} "
+                                         f"here); {advice}")
             if flags[0] or flags[1]:
                 stopped_by = "signal" if flags[0] else "max_minutes"
                 break
@@ -311,6 +314,12 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             if step >= config.steps:
                 metrics = evaluate(None)
     finally:
+        # Workers ignore SIGINT/SIGTERM (the training process stops cleanly), so they are told to exit
+        # here: left to the interpreter's exit, which terminates them with SIGTERM, an error raised
+        # out of this loop would hang the process forever.
+        shutdown = getattr(batches, "_shutdown_workers", None)
+        if shutdown is not None:
+            shutdown()
         if bar is not None:
             bar.close()
         for sig, handler in previous.items():
