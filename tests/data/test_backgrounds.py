@@ -60,3 +60,19 @@ def test_the_photo_library_is_the_same_every_time():
     first, second = PhotoLibrary(), PhotoLibrary()
     assert first.sources == second.sources
     assert all(np.array_equal(a, b) for a, b in zip(first.images, second.images))
+
+
+def test_undecodable_photos_and_empty_folders_are_named(tmp_path):
+    import cv2
+
+    good = tmp_path / "good"
+    good.mkdir()
+    cv2.imwrite(str(good / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    (good / "b.jpg").write_text("hello")
+    with pytest.raises(ValueError, match=r"background photo .*b.jpg cannot be decoded"):
+        PhotoLibrary([good], use_skimage=False)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("no photos here")
+    with pytest.raises(ValueError, match=r"background folder .*empty holds no usable"):
+        PhotoLibrary([empty], use_skimage=False)

@@ -280,3 +280,35 @@ def test_a_bad_model_or_rank_writes_nothing(tmp_path):
     assert not (tmp_path / "s").exists()
     with pytest.raises(ValueError, match="rank: expected 0 <= rank < world_size"):
         write_dataset(tmp_path / "s", 1, model_spec="builtin", rank=0.5, world_size=2, progress=False)
+
+
+def test_a_shard_with_non_finite_ground_truth_is_named(dataset_root, tmp_path):
+    import zipfile
+
+    root = tmp_path / "nan"
+    root.mkdir()
+    for name in os.listdir(dataset_root):
+        (root / name).write_bytes((dataset_root / name).read_bytes())
+    source = dataset_root / "shard_00001.npz"
+    with zipfile.ZipFile(source) as old, zipfile.ZipFile(root / "shard_00001.npz", "w") as new:
+        for member in old.namelist():
+            if member == "landmarks.npy":
+                landmarks = np.load(old.open(member))
+                landmarks[1, 3] = np.nan
+                with new.open(member, "w") as handle:
+                    np.lib.format.write_array(handle, landmarks)
+            else:
+                new.writestr(member, old.read(member))
+    dataset = SyntheticHeadDataset(root)
+    assert int(dataset[0]["index"]) == 0  # other shards still read
+    with pytest.raises(ValueError, match=r"shard_00001.npz: corrupt shard.*table 'landmarks' holds NaN"):
+        dataset[5]
+
+
+def test_bad_environment_rank_and_infinite_identity_scale_are_named(tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match=r"identity_scale: expected a finite number >= 0, got inf"):
+        SynthConfig(identity_scale=float("inf"))
+    monkeypatch.setenv("RANK", "abc")
+    with pytest.raises(ValueError, match=r"\$RANK: expected an integer, got 'abc'"):
+        write_dataset(tmp_path / "out", 2, workers=1, model_spec="builtin", progress=False)
+    assert not (tmp_path / "out").exists()

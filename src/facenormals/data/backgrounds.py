@@ -87,14 +87,18 @@ class PhotoLibrary:
             folder = Path(folder)
             if not folder.is_dir():
                 raise ValueError(f"background folder {folder} does not exist")
+            found = 0
             for path in sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png")):
                 bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-                if bgr is None:
-                    continue
+                if bgr is None:  # a user's photo that is silently missing would change the data unnoticed
+                    raise ValueError(f"background photo {path} cannot be decoded as an image; remove or replace it")
                 image = _to_rgb_uint8(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
                 if image is not None:
                     self.images.append(image)
                     self.sources.append(str(path))
+                    found += 1
+            if not found:
+                raise ValueError(f"background folder {folder} holds no usable .jpg/.jpeg/.png photo")
 
     def __len__(self) -> int:
         return len(self.images)

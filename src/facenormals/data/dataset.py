@@ -107,6 +107,9 @@ class SyntheticHeadDataset(Dataset):
             archive = zipfile.ZipFile(self.root / shard_name(shard))
             self._archives[shard] = archive
             self._tables[shard] = {name: read_member(archive, name) for name in SHARD_ARRAYS}
+            for name, table in self._tables[shard].items():  # a wrong target would train silently
+                if table.dtype.kind == "f" and not np.isfinite(table).all():
+                    raise ValueError(f"table {name!r} holds NaN or infinite values")
             expected = shard_range(shard, self.count, self.shard_size)
             index = self._tables[shard]["index"]
             if not np.array_equal(index, np.arange(expected.start, expected.stop)):

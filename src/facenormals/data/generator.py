@@ -98,8 +98,8 @@ class SynthConfig:
 
         if int(self.image_size) < 16:
             raise ValueError(f"image_size: expected >= 16, got {self.image_size}")
-        if not self.identity_scale >= 0:
-            raise ValueError(f"identity_scale: expected >= 0, got {self.identity_scale}")
+        if not (math.isfinite(self.identity_scale) and self.identity_scale >= 0):
+            raise ValueError(f"identity_scale: expected a finite number >= 0, got {self.identity_scale}")
         for name in ("expression_probability", "hair_probability", "cap_probability", "occluder_probability",
                      "photo_probability"):
             probability(name)

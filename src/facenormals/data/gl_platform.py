@@ -177,8 +177,12 @@ def create_gl_context() -> _Context:
     try:
         import pyrender  # noqa: F401
     except ImportError as error:
+        hint = ("PyOpenGL 3.1.0 (pinned by pyrender) has a broken OSMesa binding: install EGL "
+                f"({EGL_PACKAGES}) and unset PYOPENGL_PLATFORM" if platform == "osmesa"
+                else "pyrender and PyOpenGL are dependencies of facenormals: reinstall it (`pip install -e .` or "
+                "`pip install pyrender`)")
         raise HeadlessGLError(
-            f"rendering needs pyrender ({error}); install it with `pip install 'facenormals[render]'`"
+            f"importing pyrender with PYOPENGL_PLATFORM={platform} failed ({error}); {hint}"
         ) from error
     except Exception as error:  # noqa: BLE001 - pyglet fails with AttributeError/OSError on missing X libraries
         raise HeadlessGLError(

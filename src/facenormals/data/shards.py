@@ -280,8 +280,8 @@ def write_dataset(
     seed = _check_positive(seed, "seed", minimum=0)
     shard_size = _check_positive(shard_size, "shard_size")
     chunk_size = min(_check_positive(chunk_size, "chunk_size"), 64)
-    rank = int(os.environ.get("RANK", 0)) if rank is None else rank
-    world_size = int(os.environ.get("WORLD_SIZE", 1)) if world_size is None else world_size
+    rank = _environment_integer("RANK", 0) if rank is None else rank
+    world_size = _environment_integer("WORLD_SIZE", 1) if world_size is None else world_size
     world_size = _check_positive(world_size, "world_size")
     if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)) or not 0 <= int(rank) < world_size:
         raise ValueError(f"rank: expected 0 <= rank < world_size = {world_size}, got {rank}")
@@ -325,14 +325,8 @@ def write_dataset(
                     f"{root}: holds a dataset with another {key} ({existing.get(key)!r} != {manifest[key]!r}); "
                     "use another folder or the same settings to resume"
                 )
-    with atomic_write(path) as part:
-        part.write_text(json.dumps(manifest, indent=1))
-
     num_shards = -(-count // shard_size)
     mine = [k for k in range(num_shards) if k % world_size == rank]
-    for k in mine:  # leftovers of a killed run of this rank
-        for stale in root.glob(f".{shard_name(k)}.*{PART}*"):
-            stale.unlink(missing_ok=True)
     pending = [k for k in mine if not shard_is_complete(root / shard_name(k), shard_range(k, count, shard_size))]
     chunks = [(r.start + i, min(r.stop, r.start + i + chunk_size))
               for k in pending for r in [shard_range(k, count, shard_size)] for i in range(0, len(r), chunk_size)]
@@ -340,7 +334,12 @@ def write_dataset(
     if chunks:
         from facenormals.data.gl_platform import select_gl_platform
 
-        select_gl_platform()  # fail fast, with the packages to install, before spawning workers
+        select_gl_platform()  # fail fast, with the packages to install, before writing anything
+    with atomic_write(path) as part:
+        part.write_text(json.dumps(manifest, indent=1))
+    for k in mine:  # leftovers of a killed run of this rank
+        for stale in root.glob(f".{shard_name(k)}.*{PART}*"):
+            stale.unlink(missing_ok=True)
     bar = _Progress(total, progress, f"synth rank {rank}/{world_size}" if world_size > 1 else "synth")
     start = time.time()
     written = 0
@@ -402,6 +401,16 @@ def _shards(results: Iterator[SynthBatch], shards: Sequence[int], count: int, sh
         if have == need:
             yield queue.pop(0), SynthBatch.concatenate(buffer)
             buffer, have = [], 0
+
+
+def _environment_integer(name: str, default: int) -> int:
+    text = os.environ.get(name)
+    if text is None:
+        return default
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"${name}: expected an integer, got {text!r}") from None
 
 
 def read_member(archive: zipfile.ZipFile, name: str) -> np.ndarray:
