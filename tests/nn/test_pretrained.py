@@ -83,3 +83,24 @@ def test_update_weight_metadata_keeps_the_weights(tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a weight file")
     with pytest.raises(ValueError, match="junk.pt: not a readable weight file"):
         update_weight_metadata(tmp_path / "junk.pt", note="x")
+
+
+def test_metadata_that_a_weight_file_cannot_hold_is_refused(tmp_path):
+    import re
+    import shutil
+
+    import numpy as np
+
+    from facenormals.nn import update_weight_metadata
+
+    path = tmp_path / "mine.pt"
+    shutil.copy(pretrained_weights_path(), path)
+    before = path.read_bytes()
+    for bad, name in ((np.float64(0.3), "metadata['landmark_threshold']: expected plain data"),
+                      ([0.1, np.float32(2)], "metadata['landmark_threshold'][1]: expected plain data"),
+                      ({"a": tmp_path}, "metadata['landmark_threshold']['a']: expected plain data")):
+        with pytest.raises(ValueError, match=re.escape(name)):
+            update_weight_metadata(path, landmark_threshold=bad)
+    assert path.read_bytes() == before
+    update_weight_metadata(path, landmark_threshold=[0.3] * 24, note={"run": "x", "steps": 3, "ok": True, "none": None})
+    assert load_weights(path).metadata["note"]["steps"] == 3

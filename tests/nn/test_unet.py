@@ -335,3 +335,16 @@ def test_landmark_peak_weight_matches_a_naive_loop():
     assert float(plain["landmarks"]) == pytest.approx(float(((pred - target) ** 2).mean()), rel=1e-6)
     with pytest.raises(ValueError, match="landmark_peak_weight"):
         normal_landmark_loss(out, normals, target, landmark_peak_weight=-1.0)
+
+
+def test_a_half_precision_network_gives_unit_or_zero_normals():
+    net = NormalLandmarkUNet(base_channels=4, depth=2).half()
+    images = torch.rand(1, 3, 16, 16).half()
+    with torch.no_grad():
+        net.head.weight.zero_()
+        net.head.bias.zero_()
+        zero = net(images).normals  # a zero head output: finite zero normals, not NaN
+        net.head.bias[:3] = torch.tensor([200.0, 0.0, -200.0])  # |n|² = 80,000 overflows float16
+        large = net(images).normals
+    assert zero.dtype == torch.float16 and bool(torch.isfinite(zero).all()) and float(zero.abs().max()) == 0.0
+    torch.testing.assert_close(large.float().norm(dim=1), torch.ones(1, 16, 16), atol=2e-3, rtol=0)

@@ -399,3 +399,16 @@ def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(
     assert picked[0] is stray.alternatives[0] and picked[1] is single
     assert messages == ["group.jpg: too few landmarks in the first detected face; using the next one, head crop "
                         "60 px at (10, 20)"]
+
+
+def test_predict_maps_checks_its_crops():
+    from facenormals.nn import NormalLandmarkUNet
+    from facenormals.reconstruct import predict_maps
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    crops = torch.rand(1, 3, 16, 16)
+    crops[0, 1, 3, 4] = float("nan")
+    with pytest.raises(ValueError, match="crops: expected finite values"):
+        predict_maps(net, crops)
+    with pytest.raises(ValueError, match=r"crops: expected shape \(V, 3, S, S\)"):
+        predict_maps(net, torch.rand(3, 16, 16))

@@ -137,3 +137,17 @@ def test_evaluate_network_runs_where_asked_and_checks_thresholds():
     with pytest.raises(ValueError, match=r"threshold: expected one value or one per landmark channel \(24\), "
                                          r"got shape \(5,\)"):
         evaluate_network(net, data, mirror=False, threshold=[0.5] * 5)
+
+
+def test_normal_angles_refuses_nan_and_integer_maps():
+    from facenormals.training import normal_angles
+
+    n = torch.zeros(1, 3, 1, 2)
+    n[:, 2] = -1.0
+    mask = torch.ones(1, 1, 1, 2, dtype=torch.bool)
+    bad = n.clone()
+    bad[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="predicted: expected finite values"):
+        normal_angles(bad, n, mask)
+    with pytest.raises(ValueError, match="target: expected a floating-point tensor"):
+        normal_angles(n, n.long(), mask)

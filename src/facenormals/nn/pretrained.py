@@ -56,6 +56,29 @@ def _read_payload(path: Path) -> dict:
     return payload
 
 
+def check_plain_metadata(items: dict, prefix: str = "metadata") -> None:
+    """Raise ``ValueError`` naming the first entry of ``items`` that a weight file cannot hold, i.e.
+    that :func:`torch.load` with ``weights_only=True`` would refuse to read back."""
+    def check(value: object, name: str) -> None:
+        if type(value) in (str, int, float, bool, type(None)):
+            return
+        if type(value) in (list, tuple):
+            for i, v in enumerate(value):
+                check(v, f"{name}[{i}]")
+            return
+        if type(value) is dict:
+            for k, v in value.items():
+                if type(k) is not str:
+                    raise ValueError(f"{name}: expected string keys, got {type(k).__name__} {k!r}")
+                check(v, f"{name}[{k!r}]")
+            return
+        raise ValueError(f"{name}: expected plain data (str, int, float, bool, None, lists and dicts of them), "
+                         f"got {type(value).__module__}.{type(value).__name__} {value!r}; convert it, e.g. float(x)")
+
+    for key, value in items.items():
+        check(value, f"{prefix}[{key!r}]")
+
+
 def update_weight_metadata(path: str | Path, **items: object) -> Path:
     """Add or replace metadata entries of a weight file in place (e.g. the ``fit_weights`` that
     ``benchmarks/tune_network_fit.py --store`` chose for the network); the weights are untouched.
@@ -64,7 +87,9 @@ def update_weight_metadata(path: str | Path, **items: object) -> Path:
     leaves the old file.
 
     Raises:
-        FileNotFoundError, ValueError: as :func:`load_weights`.
+        FileNotFoundError, ValueError: as :func:`load_weights`; ValueError naming an entry that is not
+            plain data (str, int, float, bool, None, and lists and str-keyed dicts of them): a numpy
+            number or a path would make the file unreadable to :func:`load_weights`.
 
     Example:
         >>> import shutil, tempfile
@@ -74,6 +99,7 @@ def update_weight_metadata(path: str | Path, **items: object) -> Path:
         >>> load_weights(path).metadata["fit_weights"]
         {'normals': 0.25, 'prior': 1.0}
     """
+    check_plain_metadata(items)
     path = Path(path)
     payload = _read_payload(path)
     payload["metadata"] = {**payload.get("metadata", {}), **items}

@@ -224,10 +224,12 @@ class NormalLandmarkUNet(nn.Module):
         raw = self.head(x).to(images.dtype)  # float32 normalisation under bf16 autocast
 
         raw_normals = raw[:, :3]
+        if raw_normals.dtype in (torch.float16, torch.bfloat16):  # a half model: eps² underflows, |n|² overflows
+            raw_normals = raw_normals.float()
         # clamp before the sqrt: exactly unit where |n| >= eps, finite gradients everywhere.
         norm = torch.sqrt((raw_normals * raw_normals).sum(dim=1, keepdim=True).clamp(min=self.eps**2))
         return UNetOutput(
-            normals=raw_normals / norm,
+            normals=(raw_normals / norm).to(raw.dtype),
             landmarks=raw[:, 3 : 3 + self.num_landmarks],
             foreground_logits=raw[:, 3 + self.num_landmarks :],
         )

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape
 from facenormals.core.files import publish, temporary_beside
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks, fit_head
@@ -144,6 +144,9 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
         >>> maps.normal_maps.shape, maps.landmarks.shape
         (torch.Size([2, 3, 16, 16]), torch.Size([2, 24, 2]))
     """
+    check_shape(crops, ["V", 3, "S", "S"], "crops")
+    check_floating(crops, "crops")
+    check_finite(crops, "crops")  # one NaN pixel would turn every map into NaN
     if threshold is None:
         threshold = landmark_threshold(net)
     start = time.perf_counter()

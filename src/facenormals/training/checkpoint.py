@@ -8,7 +8,7 @@ import torch
 from torch.utils.data import Dataset
 
 from facenormals.core.files import atomic_write
-from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
+from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata
 
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
 
@@ -67,6 +67,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
     Raises:
         ValueError: when ``out`` is ``checkpoint`` itself (the training state would be lost).
     """
+    check_plain_metadata(metadata or {})
     if Path(out).resolve() == Path(checkpoint).resolve():
         raise ValueError(f"out: {out} is the checkpoint being exported; writing the weights over it would lose "
                          "the training state, choose another file")

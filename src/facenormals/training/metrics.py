@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Subset
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL, drop_hidden_landmarks
 from facenormals.models import MorphableModel
@@ -78,6 +78,9 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     check_shape(mask, ["B", 1, "H", "W"], "mask", dims)
     if mask.dtype != torch.bool:
         raise ValueError(f"mask: expected a bool tensor, got dtype {mask.dtype}")
+    for name, x in (("predicted", predicted), ("target", target)):
+        check_floating(x, name)
+        check_finite(x, name)
     cos = (torch.nn.functional.normalize(predicted, dim=1) * torch.nn.functional.normalize(target, dim=1)).sum(1)
     return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))[mask[:, 0]]
 
@@ -199,12 +202,14 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     net.eval()
     device = next(net.parameters()).device
     peaks, visible = [], []
-    for batch in DataLoader(dataset, batch_size=batch_size):
-        image = batch["image"].to(device)
-        maps = (mirror_averaged(net, image) if mirror else net(image)).landmarks.float()
-        peaks.append(maps.flatten(2).amax(-1).cpu())
-        visible.append(batch["landmark_visible"])
-    net.train(was_training)
+    try:
+        for batch in DataLoader(dataset, batch_size=batch_size):
+            image = batch["image"].to(device)
+            maps = (mirror_averaged(net, image) if mirror else net(image)).landmarks.float()
+            peaks.append(maps.flatten(2).amax(-1).cpu())
+            visible.append(batch["landmark_visible"])
+    finally:
+        net.train(was_training)
     peak, vis = torch.cat(peaks), torch.cat(visible)
     correct = torch.stack([((peak > t) == vis).float().mean(0) for t in candidates])  # (T, L)
 
