@@ -139,3 +139,24 @@ def test_train_stopped_by_a_signal_exits_130_without_exporting(tmp_path, monkeyp
                    "--export", str(tmp_path / "w.pt"), "--quiet"])
     assert status == 130 and not (tmp_path / "w.pt").exists()
     assert "interrupted: rerun the same command to resume (and export)" in capsys.readouterr().err
+
+
+def test_output_paths_are_checked_before_any_work(tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    assert main(["demo", "--model", "builtin", "--out", str(tmp_path / "afile")]) == 1
+    assert "--out: " in capsys.readouterr().err
+    for json_path, message in ((tmp_path, "is a folder"), (tmp_path / "afile" / "r.json", "is a file, not a folder")):
+        status = main(["evaluate", str(tmp_path / "missing.ply"), str(tmp_path / "missing.ply"), "--json", str(json_path)])
+        err = capsys.readouterr().err
+        assert status == 1 and "--json: " in err and message in err, err
+
+
+def test_prediction_landmarks_must_be_integer_indices(tmp_path, capsys):
+    model = builtin_head_model()
+    model.export_mesh(tmp_path / "ref.ply")
+    model.export_mesh(tmp_path / "pred.ply")
+    for value in (1.7, True):
+        (tmp_path / "lm.json").write_text(json.dumps({"nose_tip": value}))
+        status = main(["evaluate", str(tmp_path / "pred.ply"), str(tmp_path / "ref.ply"), "--model", "builtin",
+                       "--prediction-landmarks", str(tmp_path / "lm.json")])
+        assert status == 1 and "non-integer vertex indices" in capsys.readouterr().err

@@ -18,6 +18,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from facenormals.models import load_model
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
+    _check_writable(Path(args.out), "--out", folder=True)
     model = load_model(args.model)
     if model.name == "builtin" and args.model == "auto":
         print("ICT-FaceKit not found: using the built-in procedural head (see docs/installation.md)")
@@ -95,6 +96,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from facenormals.mesh import load_mesh
     from facenormals.models import load_model
 
+    if args.json:
+        _check_writable(Path(args.json), "--json")
     pred_v, pred_f = load_mesh(args.prediction)
     ref_v, ref_f = load_mesh(args.reference)
     model = load_model(args.model)
@@ -106,7 +109,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.prediction_landmarks:
         try:
             with open(args.prediction_landmarks) as handle:
-                pred_landmarks = {str(k): int(v) for k, v in json.load(handle).items()}
+                pred_landmarks = dict(json.load(handle))
+            wrong = {k: v for k, v in pred_landmarks.items() if type(v) is not int}  # 1.7 or true are no index
+            if wrong:
+                raise ValueError(f"non-integer vertex indices {wrong}")
         except (OSError, ValueError, TypeError, AttributeError) as error:
             raise ValueError(f"{args.prediction_landmarks}: expected a JSON object of landmark name -> vertex index "
                              f"({type(error).__name__}: {error})") from None
@@ -121,12 +127,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             f"{args.prediction}: has {pred_v.shape[0]} vertices, not the model's {model.num_vertices}; "
             "pass --prediction-landmarks JSON (landmark name -> vertex index) for the rough alignment"
         )
-    report = evaluate_reconstruction(pred_v.double(), pred_f, ref_v.double(), ref_f, model.face_region,
-                                     correspondences=(pred_landmarks, model.landmarks))
+    try:
+        report = evaluate_reconstruction(pred_v.double(), pred_f, ref_v.double(), ref_f, model.face_region,
+                                         correspondences=(pred_landmarks, model.landmarks))
+    except ValueError as error:  # e.g. a degenerate mesh: say which files
+        raise ValueError(f"{args.prediction} against {args.reference}: {error}") from None
     print(report)
     if args.json:
         from facenormals.core import atomic_write
 
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(args.json) as part:
             part.write_text(json.dumps(report.as_dict(), indent=2))
         print(f"wrote {args.json}")
@@ -176,6 +186,18 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_writable(path: Path, option: str, folder: bool = False) -> None:
+    """Refuse, before any work, an output ``path`` that is a folder (a file when ``folder``) or
+    lies under a file."""
+    if folder and path.exists() and not path.is_dir():
+        raise ValueError(f"{option}: {path} exists and is not a folder")
+    if not folder and path.is_dir():
+        raise ValueError(f"{option}: {path} is a folder; give a file name")
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
+
+
 def _check_export_path(path: Path, out: Path) -> None:
     """Refuse, before training, an --export path that cannot be written or would destroy a file."""
     from facenormals.nn import load_weights
@@ -183,11 +205,7 @@ def _check_export_path(path: Path, out: Path) -> None:
     if path.resolve() == (out / "last.pt").resolve():
         raise ValueError(f"--export: {path} is the run's checkpoint; writing the weights over it would lose the "
                          "training state, choose another file")
-    if path.is_dir():
-        raise ValueError(f"--export: {path} is a folder; give a file name such as {path / 'weights.pt'}")
-    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:
-        raise ValueError(f"--export: {path} cannot be written: {blocking} is a file, not a folder")
+    _check_writable(path, "--export")
     if path.exists():
         try:
             load_weights(path)

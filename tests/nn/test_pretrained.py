@@ -104,3 +104,14 @@ def test_metadata_that_a_weight_file_cannot_hold_is_refused(tmp_path):
     assert path.read_bytes() == before
     update_weight_metadata(path, landmark_threshold=[0.3] * 24, note={"run": "x", "steps": 3, "ok": True, "none": None})
     assert load_weights(path).metadata["note"]["steps"] == 3
+
+
+def test_unreadable_weight_files_never_suggest_weights_only_false(tmp_path):
+    import numpy as np
+
+    torch.save({"x": np.float64(1.0)}, tmp_path / "objects.pt")
+    (tmp_path / "garbage.pt").write_bytes(b"garbage")
+    for name, reason in (("objects.pt", "holds Python objects other than tensors"), ("garbage.pt", "Unsupported operand")):
+        with pytest.raises(ValueError, match=f"{name}: not a readable weight file") as caught:
+            load_weights(tmp_path / name)
+        assert reason in str(caught.value) and "weights_only" not in str(caught.value)

@@ -33,13 +33,27 @@ def pretrained_weights_path() -> Path:
     return Path(str(resources.files("facenormals") / "weights" / _SHIPPED))
 
 
+def describe_load_error(error: BaseException) -> str:
+    """A one-line reason for a failed ``torch.load(..., weights_only=True)``, without torch's advice
+    to load with ``weights_only=False`` (which would run code from the file)."""
+    text = str(error)
+    marker = "WeightsUnpickler error:"
+    if marker in text:  # torch wraps the cause in advice; keep the cause
+        cause = text[text.index(marker) + len(marker):].strip().split("\n")[0].split(". Please")[0]
+        if cause.startswith("Unsupported global"):
+            return f"it holds Python objects other than tensors and plain data ({cause}), which facenormals never loads"
+        return f"not a torch file of tensors and plain data ({cause})"
+    first = text.strip().splitlines()[0] if text.strip() else ""
+    return f"{type(error).__name__}: {first}" if first else type(error).__name__
+
+
 def _read_payload(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such weight file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
-        raise ValueError(f"{path}: not a readable weight file ({error})") from None
+        raise ValueError(f"{path}: not a readable weight file ({describe_load_error(error)})") from None
     if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
         raise ValueError(f"{path}: not a facenormals network weight file")
     if payload.get("version") != WEIGHTS_VERSION:

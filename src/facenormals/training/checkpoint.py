@@ -8,7 +8,7 @@ import torch
 from torch.utils.data import Dataset
 
 from facenormals.core.files import atomic_write
-from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata
+from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata, describe_load_error
 
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
 
@@ -38,7 +38,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)  # plain data: no code runs on load
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
-        raise ValueError(f"{path}: not a readable checkpoint ({error})") from None
+        raise ValueError(f"{path}: not a readable checkpoint ({describe_load_error(error)})") from None
     if not isinstance(state, dict) or state.get("format") != "facenormals-train":
         raise ValueError(f"{path}: not a facenormals training checkpoint")
     return state
