@@ -55,3 +55,10 @@ def test_faces_must_index_the_vertices(tmp_path):
                    "3 0 1 2\n3 0 1 9\n")
     with pytest.raises(ValueError, match=r"bad.ply: faces: expected vertex indices in \[0, 3\), got values in \[0, 9\]"):
         load_mesh(bad)
+
+
+def test_load_mesh_dtype_must_be_floating(tmp_path):
+    path = save_mesh(tmp_path / "m.ply", torch.eye(3), torch.tensor([[0, 1, 2]]))
+    with pytest.raises(ValueError, match="dtype: expected a floating torch.dtype"):
+        load_mesh(path, dtype=torch.int64)
+    assert load_mesh(path, dtype=torch.float64)[0].dtype == torch.float64

@@ -115,3 +115,8 @@ def test_given_normals_must_match_the_vertices(posed_head):
     assert nmap.dtype == torch.float64
     with pytest.raises(ValueError, match=r"normals: expected dtype torch.float64 \(the dtype of vertices\), got torch.float32"):
         render_normal_map(vertices, model.faces, R, t, K, (32, 32), normals=normals.float())
+
+
+def test_unoccluded_points_checks_the_tolerance():
+    with pytest.raises(ValueError, match="tolerance: expected a finite number >= 0, got nan"):
+        unoccluded_points(torch.ones(1, 1, 2), torch.ones(1, 1), torch.ones(1, 3, 3), tolerance=float("nan"))

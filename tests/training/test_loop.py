@@ -225,3 +225,15 @@ def test_an_error_with_worker_processes_exits_instead_of_hanging(tmp_path):
     assert done.returncode == 1
     assert "FloatingPointError: step 1: the loss is not finite" in done.stderr
     assert "resume from" not in done.stderr  # no checkpoint was written to resume from
+
+
+def test_resuming_with_other_data_seed_or_fewer_steps_says_so(tmp_path, capsys):
+    data = TinyHeads(8)
+    train(_config(tmp_path, steps=2), data, progress=False)
+    capsys.readouterr()
+    train(_config(tmp_path, steps=2, data="elsewhere", seed=4), data, progress=False)
+    out = capsys.readouterr().out
+    assert "--data elsewhere (checkpoint: unused)" in out and "--seed 4 (checkpoint: 3)" in out
+    assert "at step 2, at or beyond --steps 2: nothing to train" in out
+    train(_config(tmp_path, steps=2), data, progress=False)
+    assert "--data" not in capsys.readouterr().out

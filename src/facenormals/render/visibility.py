@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_image_size, check_integer, check_shape
+from facenormals.core.check import check_floating, check_image_size, check_integer, check_nonnegative, check_shape
 
 __all__ = ["splat_zbuffer", "unoccluded_points", "visible_vertices"]
 
@@ -95,6 +95,7 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     zdims = check_shape(zbuffer, ["B", "H", "W"], "zbuffer", dims)
     for name, x in (("pixels", pixels), ("depth", depth), ("zbuffer", zbuffer)):
         check_floating(x, name)
+    tolerance = check_nonnegative(tolerance, "tolerance")  # NaN would hide every point
     height, width = zdims["H"], zdims["W"]
     u, v = _nearest_pixel(pixels)
     inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)

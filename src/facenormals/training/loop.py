@@ -178,6 +178,14 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         if state["world_size"] != ctx.world_size or state["config"]["batch_size"] != config.batch_size:
             print(f"note: resuming with world size {ctx.world_size} x batch {config.batch_size} "
                   f"(checkpoint: {state['world_size']} x {state['config']['batch_size']}); the data order differs from here on")
+        if ctx.is_main:
+            for key, what in (("data", "the training data"), ("seed", "the data order and augmentation")):
+                old, new = state["config"].get(key), getattr(config, key)
+                same = (Path(str(old)).resolve() == Path(str(new)).resolve()) if key == "data" else old == new
+                if not same:
+                    print(f"note: resuming {last} with --{key} {new} (checkpoint: {old}); {what} differ from here on")
+            if int(state["step"]) >= config.steps:
+                print(f"note: {last} is at step {state['step']}, at or beyond --steps {config.steps}: nothing to train")
         net.load_state_dict(state["model"])
         ema.load_state_dict(state["ema"])
         optimizer.load_state_dict(state["optimizer"])
