@@ -303,7 +303,8 @@ def test_angles_are_wrapped_for_params_json():
 
 
 def test_unreliable_view_warning_follows_the_median_landmark_error(oracle):
-    """Two spurious landmarks (which the fit ignores) raise no warning; landmarks that are all off do."""
+    """Two spurious landmarks (which the fit ignores) raise no warning; landmarks that are all off, or
+    fewer than MIN_RELIABLE_LANDMARKS, do."""
     model, views, order = oracle
     focal = float(views.intrinsics[0, 0, 0])
     landmarks = views.landmarks[0][1:2, order].clone()
@@ -313,7 +314,9 @@ def test_unreliable_view_warning_follows_the_median_landmark_error(oracle):
     all_off = landmarks.clone()
     all_off[0, found[::2]] += torch.tensor([12.0, -12.0])
     all_off[0, found[1::2]] -= torch.tensor([12.0, -12.0])
-    for points, warned in ((landmarks, False), (two_off, False), (all_off, True)):
+    few = landmarks.clone()
+    few[0, found[5:]] = float("nan")  # exact, but only five: the pose is barely constrained
+    for points, warned in ((landmarks, False), (two_off, False), (all_off, True), (few, True)):
         messages = []
         net = OracleNet(views.normal_maps[0][1:2], points)
         reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, log=messages.append, mirror=False)

@@ -48,6 +48,9 @@ __all__ = ["FitInputs", "NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reco
 #: on 32 validation heads). Exact maps want the paper's weights (``FitWeights()``).
 NETWORK_FIT_WEIGHTS = FitWeights(normals=0.1, landmarks=0.8, prior=1.0)
 
+#: A view fitted to fewer landmarks than this (after dropping hidden ones) is reported as unreliable.
+MIN_RELIABLE_LANDMARKS = 6
+
 
 def network_fit_weights(net: torch.nn.Module) -> FitWeights:
     """The fit weights for ``net``'s maps: :data:`NETWORK_FIT_WEIGHTS` with the entries its weight
@@ -299,11 +302,17 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
         fit.prealignment_rms_px = inputs.prealignment.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
+    used = torch.isfinite(inputs.landmarks).all(-1).sum(1).tolist()
+    dropped = inputs.dropped.sum(1).tolist()
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])
-        if not (0.25 * focal <= f_v <= 4.0 * focal) or not median <= 0.05 * S:
+        # few landmarks left, or most detections hidden by the head posed to them: a pose the
+        # landmarks barely constrain (seen: a weak network's frontal photo fitted at 62 deg yaw)
+        if (not (0.25 * focal <= f_v <= 4.0 * focal) or not median <= 0.05 * S or used[v] < MIN_RELIABLE_LANDMARKS
+                or dropped[v] > used[v]):
             log(f"warning: view {v} looks unreliable (focal {f_v:.0f} px against the prior {focal:.0f} px, "
-                f"median landmark error {median:.1f} px): check view{v}_overlay.png and view{v}_landmarks.png")
+                f"median landmark error {median:.1f} px, {used[v]} landmarks fitted, {dropped[v]} dropped as "
+                f"hidden): check view{v}_overlay.png and view{v}_landmarks.png")
     return maps, fit
 
 
