@@ -106,6 +106,9 @@ def test_library_errors_and_ctrl_c_are_one_line_and_an_exit_status(monkeypatch, 
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith("facenormals demo: ")
         assert ("interrupted" in err) == (status == 130)
+    monkeypatch.setenv("FACENORMALS_TRACEBACK", "0")
+    assert main(["demo", "--out", "unused"]) == 130  # "0" means off
+    capsys.readouterr()
     monkeypatch.setenv("FACENORMALS_TRACEBACK", "1")
     monkeypatch.setattr(cli, "_cmd_demo", fail(RuntimeError("boom")))
     with pytest.raises(RuntimeError, match="boom"):

@@ -335,7 +335,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "where that applies)", file=sys.stderr)
         return 130
     except (ValueError, OSError, RuntimeError, ArithmeticError) as error:
-        if os.environ.get("FACENORMALS_TRACEBACK"):
+        if os.environ.get("FACENORMALS_TRACEBACK", "") not in ("", "0"):
             raise
         print(f"facenormals {args.command}: error: {error}", file=sys.stderr)
         return 1

@@ -56,3 +56,16 @@ def test_check_same_dims():
     check_same_dims({"B": 2}, "x", B=2)
     with pytest.raises(ValueError, match="x: expected B=3, got B=2"):
         check_same_dims({"B": 2}, "x", B=3)
+
+
+def test_integers_from_numpy_and_torch_are_integers():
+    import numpy as np
+
+    from facenormals.core.check import check_image_size, check_integer
+
+    assert check_integer(np.int64(2), "scale", minimum=1) == 2
+    assert check_integer(torch.tensor(3), "radius") == 3
+    assert check_image_size(torch.tensor([8, 6])) == (8, 6)
+    for bad in (True, np.bool_(True), 2.0, torch.tensor(2.0), "2"):
+        with pytest.raises(ValueError, match="radius: expected an integer"):
+            check_integer(bad, "radius")

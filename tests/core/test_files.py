@@ -54,3 +54,18 @@ def test_published_files_get_umask_permissions_and_are_flushed(tmp_path, monkeyp
     part = temporary_beside(tmp_path / "v.pt")
     publish(part, tmp_path / "v.pt", durable=False)
     assert synced == [] and (tmp_path / "v.pt").exists()
+
+
+def test_errors_name_the_target_and_long_names_fit(tmp_path):
+    with pytest.raises(FileNotFoundError) as caught:
+        with atomic_write(tmp_path / "missing" / "model.npz") as part:
+            part.write_text("x")
+    assert caught.value.filename == str(tmp_path / "missing" / "model.npz")
+    with pytest.raises(IsADirectoryError) as caught:
+        with atomic_write(tmp_path / "model.npz") as part:
+            open(part.parent, "w")  # an OSError about another file keeps its own name
+    assert caught.value.filename == str(tmp_path)
+    long = tmp_path / ("a" * 240 + ".ply")
+    with atomic_write(long) as part:
+        part.write_text("ply")
+    assert long.read_text() == "ply"

@@ -76,3 +76,14 @@ def test_undecodable_photos_and_empty_folders_are_named(tmp_path):
     (empty / "notes.txt").write_text("no photos here")
     with pytest.raises(ValueError, match=r"background folder .*empty holds no usable"):
         PhotoLibrary([empty], use_skimage=False)
+
+
+def test_hidden_files_and_macos_sidecars_are_not_photos(tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "beach.jpg"), np.zeros((64, 64, 3), np.uint8))
+    (tmp_path / "._beach.jpg").write_bytes(b"\x00\x05\x16\x07AppleDouble")
+    (tmp_path / "__MACOSX").mkdir()
+    (tmp_path / "__MACOSX" / "beach.jpg").write_bytes(b"resource fork")
+    library = PhotoLibrary([tmp_path], use_skimage=False)
+    assert library.sources == [str(tmp_path / "beach.jpg")]

@@ -79,3 +79,12 @@ def test_pyrender_import_is_headless_without_a_display():
         "assert os.environ['PYGLET_HEADLESS'] == 'true'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_missing_pyrender_under_osmesa_says_to_install_it(monkeypatch):
+    from facenormals.data.gl_platform import create_gl_context
+
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "osmesa")
+    monkeypatch.setitem(sys.modules, "pyrender", None)
+    with pytest.raises(HeadlessGLError, match=r"PYOPENGL_PLATFORM=osmesa failed .*pip install pyrender"):
+        create_gl_context()

@@ -62,3 +62,11 @@ def test_load_mesh_dtype_must_be_floating(tmp_path):
     with pytest.raises(ValueError, match="dtype: expected a floating torch.dtype"):
         load_mesh(path, dtype=torch.int64)
     assert load_mesh(path, dtype=torch.float64)[0].dtype == torch.float64
+
+
+def test_obj_with_normals_keeps_its_trailing_unused_vertices(tmp_path):
+    path = tmp_path / "other_tool.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nv 9 9 9\nvn 0 0 1\nf 1//1 2//1 3//1\nf 2//1 4//1 3//1\n")
+    vertices, faces = load_mesh(path)
+    assert vertices.shape == (5, 3) and vertices[4].tolist() == [9.0, 9.0, 9.0]
+    assert faces.tolist() == [[0, 1, 2], [1, 3, 2]]

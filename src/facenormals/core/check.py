@@ -9,9 +9,11 @@ shape and the received one, e.g.::
 from __future__ import annotations
 
 import math
-from numbers import Integral, Real
+import operator
+from numbers import Real
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -194,8 +196,8 @@ def check_nonnegative(value: object, name: str) -> float:
 
 
 def check_integer(value: object, name: str, minimum: int | None = None) -> int:
-    """Return ``value`` as an ``int``, raising ``ValueError`` unless it is an integer (not a bool, not
-    a float) of at least ``minimum``.
+    """Return ``value`` as an ``int``, raising ``ValueError`` unless it is an integer (a Python or
+    numpy integer or an integer 0-d tensor; not a bool, not a float) of at least ``minimum``.
 
     Example:
         >>> check_integer(3, "radius", minimum=0)
@@ -205,11 +207,15 @@ def check_integer(value: object, name: str, minimum: int | None = None) -> int:
         ...
         ValueError: radius: expected an integer, got float 1.5
     """
-    if isinstance(value, bool) or not isinstance(value, Integral):
+    if isinstance(value, (bool, np.bool_)) or (isinstance(value, Tensor) and value.dtype == torch.bool):
         raise ValueError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
-    if minimum is not None and value < minimum:
-        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value}")
-    return int(value)
+    try:
+        number = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name}: expected an integer, got {type(value).__name__} {value!r}") from None
+    if minimum is not None and number < minimum:
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {number}")
+    return number
 
 
 def check_image_size(image_size: object, name: str = "image_size") -> tuple[int, int]:

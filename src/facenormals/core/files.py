@@ -31,7 +31,10 @@ def temporary_beside(path: str | Path) -> Path:
         (True, True, True)
     """
     path = Path(path)
-    handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=PART + path.suffix, dir=path.parent)
+    try:  # the name is cut so that a long target name still leaves room for the temporary one
+        handle, name = tempfile.mkstemp(prefix=f".{path.name[:100]}.", suffix=PART + path.suffix, dir=path.parent)
+    except OSError as error:
+        raise type(error)(error.errno, error.strerror, str(path)) from None
     os.close(handle)
     return Path(name)
 
@@ -55,15 +58,21 @@ def publish(temporary: str | Path, path: str | Path, durable: bool = True) -> Pa
     os.umask(umask)
     os.chmod(temporary, 0o666 & ~umask)
     if durable:
-        with open(temporary, "rb") as handle:
-            os.fsync(handle.fileno())
+        handle = os.open(temporary, os.O_RDWR)  # Windows flushes only handles open for writing
+        try:
+            os.fsync(handle)
+        finally:
+            os.close(handle)
     os.replace(temporary, path)
     if durable and hasattr(os, "O_DIRECTORY"):  # POSIX: make the rename itself durable
-        folder = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
         try:
-            os.fsync(folder)
-        finally:
-            os.close(folder)
+            folder = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+            try:
+                os.fsync(folder)
+            finally:
+                os.close(folder)
+        except OSError:  # some network and FUSE file systems cannot sync a folder; the file is in place
+            pass
     return path
 
 
@@ -92,6 +101,11 @@ def atomic_write(path: str | Path, durable: bool = True) -> Iterator[Path]:
     try:
         yield temporary
         publish(temporary, path, durable=durable)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        if error.filename == str(temporary):  # name the file the caller asked for, not the temporary one
+            raise type(error)(error.errno, error.strerror, str(path)) from None
+        raise
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise

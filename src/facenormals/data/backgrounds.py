@@ -88,7 +88,10 @@ class PhotoLibrary:
             if not folder.is_dir():
                 raise ValueError(f"background folder {folder} does not exist")
             found = 0
-            for path in sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png")):
+            photos = (p for p in folder.rglob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png")
+                      and not any(part.startswith(".") or part == "__MACOSX"  # hidden files, macOS sidecars
+                                  for part in p.relative_to(folder).parts))
+            for path in sorted(photos):
                 bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
                 if bgr is None:  # a user's photo that is silently missing would change the data unnoticed
                     raise ValueError(f"background photo {path} cannot be decoded as an image; remove or replace it")

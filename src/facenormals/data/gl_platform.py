@@ -177,8 +177,9 @@ def create_gl_context() -> _Context:
     try:
         import pyrender  # noqa: F401
     except ImportError as error:
+        missing = isinstance(error, ModuleNotFoundError) and error.name in ("pyrender", "OpenGL")
         hint = ("PyOpenGL 3.1.0 (pinned by pyrender) has a broken OSMesa binding: install EGL "
-                f"({EGL_PACKAGES}) and unset PYOPENGL_PLATFORM" if platform == "osmesa"
+                f"({EGL_PACKAGES}) and unset PYOPENGL_PLATFORM" if platform == "osmesa" and not missing
                 else "pyrender and PyOpenGL are dependencies of facenormals: reinstall it (`pip install -e .` or "
                 "`pip install pyrender`)")
         raise HeadlessGLError(

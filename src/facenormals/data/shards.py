@@ -337,8 +337,8 @@ def write_dataset(
         select_gl_platform()  # fail fast, with the packages to install, before writing anything
     with atomic_write(path) as part:
         part.write_text(json.dumps(manifest, indent=1))
-    for k in mine:  # leftovers of a killed run of this rank
-        for stale in root.glob(f".{shard_name(k)}.*{PART}*"):
+    for k in mine:  # leftovers of a killed run of this rank (temporary names of this and of older versions)
+        for stale in (*root.glob(f".{shard_name(k)}.*{PART}*"), *root.glob(f"{shard_name(k)}.tmp*")):
             stale.unlink(missing_ok=True)
     bar = _Progress(total, progress, f"synth rank {rank}/{world_size}" if world_size > 1 else "synth")
     start = time.time()

@@ -75,7 +75,10 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
         raise ValueError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from error
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0 or len(mesh.faces) == 0:
         raise ValueError(f"{path}: not a triangle mesh with vertices and faces")
-    vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype)
+    points = np.asarray(mesh.vertices)
+    if path.suffix.lower() == ".obj":
+        points = _obj_trailing_vertices(path, points)
+    vertices = torch.as_tensor(points, dtype=dtype)
     if not bool(torch.isfinite(vertices).all()):
         raise ValueError(f"{path}: mesh has NaN or infinite vertex coordinates")
     faces = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)
@@ -84,3 +87,19 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
     return vertices, faces
+
+
+def _obj_trailing_vertices(path: Path, points: np.ndarray) -> np.ndarray:
+    """trimesh keeps an OBJ's vertex order but, with ``vt``/``vn`` lines, drops the vertices after the
+    last one a face uses; read the ``v`` lines back so that a model's topology keeps all its vertices."""
+    rows = []
+    with open(path, "rb") as handle:
+        for line in handle:
+            if line.startswith(b"v ") or line.startswith(b"v\t"):
+                rows.append([float(x) for x in line.split()[1:4]])
+    if len(rows) <= len(points):
+        return points
+    full = np.asarray(rows, dtype=np.float64)
+    if full.shape[1] != 3 or not np.allclose(full[: len(points)], points, rtol=0, atol=1e-6 * (1 + np.abs(points).max())):
+        return points  # not the simple case: keep trimesh's reading
+    return full

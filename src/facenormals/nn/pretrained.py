@@ -71,8 +71,9 @@ def _read_payload(path: Path) -> dict:
 
 
 def check_plain_metadata(items: dict, prefix: str = "metadata") -> None:
-    """Raise ``ValueError`` naming the first entry of ``items`` that a weight file cannot hold, i.e.
-    that :func:`torch.load` with ``weights_only=True`` would refuse to read back."""
+    """Raise ``ValueError`` naming the first entry of ``items`` that is not JSON-like plain data: a
+    numpy number or a path would make ``torch.load(..., weights_only=True)`` refuse the whole file,
+    and tensors are refused too (metadata stays readable as plain values; store ``tensor.tolist()``)."""
     def check(value: object, name: str) -> None:
         if type(value) in (str, int, float, bool, type(None)):
             return

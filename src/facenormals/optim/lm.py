@@ -26,7 +26,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_nonnegative, check_shape
+from facenormals.core.check import check_finite, check_integer, check_nonnegative, check_shape
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
 
@@ -335,8 +335,8 @@ def levenberg_marquardt(
     if dims["B"] < 1 or dims["P"] < 1:
         raise ValueError(f"x0: expected at least one batch element and one parameter, got {tuple(x0.shape)}")
     check_finite(x0, "x0")
-    if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1):
-        raise ValueError(f"chunk_size: expected None or an integer >= 1, got {chunk_size!r}")
+    if chunk_size is not None:
+        chunk_size = check_integer(chunk_size, "chunk_size", minimum=1)
     if jacobian_dtype is not None and not (isinstance(jacobian_dtype, torch.dtype) and jacobian_dtype.is_floating_point):
         raise ValueError(f"jacobian_dtype: expected a floating torch.dtype or None, got {jacobian_dtype!r}")
     with torch.no_grad():

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_integer, check_shape
 from facenormals.core.files import atomic_write
 
 __all__ = ["draw_alignment", "normal_map_to_image"]
@@ -70,8 +70,7 @@ def draw_alignment(
             raise ValueError(f"visible: expected a bool mask, got dtype {visible.dtype}")
     if landmark_pixels is not None:
         check_shape(landmark_pixels, ["L", 2], "landmark_pixels")
-    if not (isinstance(scale, int) and scale >= 1):
-        raise ValueError(f"scale: expected an integer >= 1, got {scale!r}")
+    scale = check_integer(scale, "scale", minimum=1)
     img = np.asarray(image)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)

@@ -19,7 +19,7 @@ from typing import Iterator
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from facenormals.core.files import atomic_write
+from facenormals.core.files import PART, atomic_write
 from facenormals.data.augment import PhotoAugmentation
 from facenormals.data.landmark_maps import landmark_maps
 from facenormals.nn.loss import normal_landmark_loss
@@ -169,6 +169,9 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     step, samples_seen = 0, 0
     last = out / "last.pt"
+    if ctx.is_main:  # checkpoint-sized temporaries of runs killed while saving
+        for stale in out.glob(f".last.pt.*{PART}*"):
+            stale.unlink(missing_ok=True)
     if last.exists():
         state = load_checkpoint(last, map_location=ctx.device)
         for key in ("base_channels", "depth"):
