@@ -19,6 +19,21 @@ __all__ = ["atomic_write", "publish", "temporary_beside"]
 PART = ".part"
 
 
+def _current_umask() -> int:
+    """The process umask. Reading it means setting it, which is not thread-safe (another thread's new
+    file could get mode 0666 in between); where the kernel reports it, it is read from there."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
 def temporary_beside(path: str | Path) -> Path:
     """Create an empty file with a unique name beside ``path`` (``.NAME.XXXX.part.SUFFIX``, hidden,
     ending in ``path``'s suffix so that writers choosing a format by extension still can).
@@ -54,9 +69,7 @@ def publish(temporary: str | Path, path: str | Path, durable: bool = True) -> Pa
         ``path``.
     """
     temporary, path = Path(temporary), Path(path)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(temporary, 0o666 & ~umask)
+    os.chmod(temporary, 0o666 & ~_current_umask())
     if durable:
         handle = os.open(temporary, os.O_RDWR)  # Windows flushes only handles open for writing
         try:
