@@ -237,3 +237,11 @@ def test_resuming_with_other_data_seed_or_fewer_steps_says_so(tmp_path, capsys):
     assert "at step 2, at or beyond --steps 2: nothing to train" in out
     train(_config(tmp_path, steps=2), data, progress=False)
     assert "--data" not in capsys.readouterr().out
+
+
+def test_a_refused_run_leaves_no_empty_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="init: .*missing.pt: no such weight file"):
+        train(_config(tmp_path, init=str(tmp_path / "missing.pt")), TinyHeads(8), progress=False)
+    with pytest.raises((ValueError, OSError), match="nowhere"):
+        train(_config(tmp_path, holdout=str(tmp_path / "nowhere")), TinyHeads(8), progress=False)
+    assert not (tmp_path / "run").exists()

@@ -155,13 +155,15 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     if config.threads is not None and ctx.device.type == "cpu":
         torch.set_num_threads(config.threads)
     out = Path(config.out)
-    if ctx.is_main:
-        out.mkdir(parents=True, exist_ok=True)
     autocast_dtype = resolve_precision(config.precision, ctx.device)
     if dataset is None:
         dataset = _open_dataset(config.data, config, with_maps=False)
     if holdout is None and config.holdout and ctx.is_main:
         holdout = _open_dataset(config.holdout, config, with_maps=False)
+    if config.init is not None and not (out / "last.pt").exists() and not Path(config.init).is_file():
+        raise FileNotFoundError(f"init: {config.init}: no such weight file")
+    if ctx.is_main:  # only now: a run refused for its data or --init leaves no empty folder
+        out.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(config.seed)
     net = NormalLandmarkUNet(base_channels=config.base_channels, depth=config.depth).to(ctx.device)
