@@ -312,3 +312,14 @@ def test_bad_environment_rank_and_infinite_identity_scale_are_named(tmp_path, mo
     with pytest.raises(ValueError, match=r"\$RANK: expected an integer, got 'abc'"):
         write_dataset(tmp_path / "out", 2, workers=1, model_spec="builtin", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_count_can_grow_but_not_shrink(dataset_root, tmp_path):
+    root = tmp_path / "shrink"
+    root.mkdir()
+    for name in os.listdir(dataset_root):
+        (root / name).write_bytes((dataset_root / name).read_bytes())
+    before = {name: (root / name).read_bytes() for name in os.listdir(root)}
+    with pytest.raises(ValueError, match=r"holds a dataset of 10 samples; --count 6 would shrink it"):
+        _write(root, count=6)
+    assert {name: (root / name).read_bytes() for name in os.listdir(root)} == before

@@ -319,6 +319,10 @@ def write_dataset(
         existing = read_manifest(root)
         if "content_sha256" not in existing.get("model", {}):  # written before the model's content was recorded
             manifest["model"] = {k: v for k, v in manifest["model"].items() if k != "content_sha256"}
+        if int(existing.get("count", count)) > count:  # would rewrite the last shard and orphan later ones
+            raise ValueError(f"{root}: holds a dataset of {existing['count']} samples; --count {count} would shrink "
+                             "it (a count can only grow); use another folder, or the SyntheticHeadDataset "
+                             "of this one with a Subset")
         for key in ("seed", "shard_size", "image_size", "model", "config"):
             if existing.get(key) != manifest[key]:
                 raise ValueError(
