@@ -156,6 +156,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from facenormals.core.check import environment_integer
     from facenormals.training import TrainConfig, export_weights, train
 
     fields = TrainConfig.__dataclass_fields__
@@ -164,7 +165,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.export:
         _check_export_path(Path(args.export), Path(config.out))
     summary = train(config, progress=not args.quiet)
-    if int(os.environ.get("RANK", "0")) != 0:  # under torchrun only rank 0 reports and exports
+    if environment_integer("RANK", 0) != 0:  # under torchrun only rank 0 reports and exports
         return 130 if summary.stopped_by == "signal" else 0
     print(f"{summary.checkpoint}: step {summary.step}/{config.steps}, {summary.samples_seen} samples seen "
           f"(stopped by {summary.stopped_by}, {summary.seconds / 60:.1f} min)")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import operator
+import os
 from numbers import Real
 from typing import Sequence
 
@@ -26,6 +27,7 @@ __all__ = [
     "check_nonnegative",
     "check_same_dims",
     "check_same_dtype_device",
+    "environment_integer",
     "check_shape",
     "check_tensor",
 ]
@@ -234,3 +236,20 @@ def check_image_size(image_size: object, name: str = "image_size") -> tuple[int,
         return check_integer(height, name, 1), check_integer(width, name, 1)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected (H, W), two integers >= 1, got {image_size!r}") from None
+
+
+def environment_integer(name: str, default: int) -> int:
+    """The integer in environment variable ``name`` (e.g. ``torchrun``'s ``RANK``), ``default`` when it
+    is unset or empty; ``ValueError`` naming ``$name`` otherwise.
+
+    Example:
+        >>> environment_integer("FACENORMALS_UNSET_EXAMPLE", 1)
+        1
+    """
+    value = os.environ.get(name)
+    if value is None or value == "":
+        return default
+    try:
+        return int(value)
+    except ValueError:
+        raise ValueError(f"${name}: expected an integer, got {value!r}") from None

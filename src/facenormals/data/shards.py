@@ -38,6 +38,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
+from facenormals.core.check import environment_integer
 from facenormals.core.files import PART, atomic_write
 from facenormals.data.generator import SynthBatch, SynthConfig
 
@@ -280,8 +281,8 @@ def write_dataset(
     seed = _check_positive(seed, "seed", minimum=0)
     shard_size = _check_positive(shard_size, "shard_size")
     chunk_size = min(_check_positive(chunk_size, "chunk_size"), 64)
-    rank = _environment_integer("RANK", 0) if rank is None else rank
-    world_size = _environment_integer("WORLD_SIZE", 1) if world_size is None else world_size
+    rank = environment_integer("RANK", 0) if rank is None else rank
+    world_size = environment_integer("WORLD_SIZE", 1) if world_size is None else world_size
     world_size = _check_positive(world_size, "world_size")
     if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)) or not 0 <= int(rank) < world_size:
         raise ValueError(f"rank: expected 0 <= rank < world_size = {world_size}, got {rank}")
@@ -405,16 +406,6 @@ def _shards(results: Iterator[SynthBatch], shards: Sequence[int], count: int, sh
         if have == need:
             yield queue.pop(0), SynthBatch.concatenate(buffer)
             buffer, have = [], 0
-
-
-def _environment_integer(name: str, default: int) -> int:
-    text = os.environ.get(name)
-    if text is None:
-        return default
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"${name}: expected an integer, got {text!r}") from None
 
 
 def read_member(archive: zipfile.ZipFile, name: str) -> np.ndarray:

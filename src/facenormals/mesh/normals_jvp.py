@@ -80,14 +80,12 @@ def _jvp_one(
 @torch.no_grad()
 def _jvp(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float) -> tuple[Tensor, Tensor]:
     """Batched: tangent edges ``(F, 3, K)`` shared, or ``(B, F, 3, K)`` per element."""
-    if vertices.shape[0] == 0:
-        num, k = vertices.shape[1], d_e1.shape[-1]
-        return vertices.new_zeros(0, num, 3), vertices.new_zeros(0, num, 3, k)
-    outputs = [
-        _jvp_one(vertices[b], faces, d_e1 if d_e1.dim() == 3 else d_e1[b], d_e2 if d_e2.dim() == 3 else d_e2[b], eps)
-        for b in range(vertices.shape[0])
-    ]
-    return torch.stack([o[0] for o in outputs]), torch.stack([o[1] for o in outputs])
+    batch, num = vertices.shape[:2]
+    normals, jacobian = vertices.new_zeros(batch, num, 3), vertices.new_zeros(batch, num, 3, d_e1.shape[-1])
+    for b in range(batch):
+        normals[b], jacobian[b] = _jvp_one(vertices[b], faces, d_e1 if d_e1.dim() == 3 else d_e1[b],
+                                           d_e2 if d_e2.dim() == 3 else d_e2[b], eps)
+    return normals, jacobian
 
 
 def _check_device(vertices: Tensor, faces: Tensor) -> None:

@@ -17,7 +17,7 @@ from urllib.parse import urlparse
 
 import numpy as np
 
-from facenormals.core.files import publish, temporary_beside
+from facenormals.core.files import atomic_write
 from facenormals.models.ict import ict_npz_from_raw
 from facenormals.models.morphable import ModelFileError
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
@@ -43,39 +43,35 @@ def _zip_name(url: str) -> str:
 def _download(url: str, target: Path, timeout: float, progress: Callable[[str], object] | None) -> None:
     """Stream ``url`` into ``target`` through a temporary file in the same folder (renamed at the end)."""
     target.parent.mkdir(parents=True, exist_ok=True)
-    part = temporary_beside(target)
     try:
-        with open(part, "wb") as handle:
-            request = urllib.request.Request(url, headers={"User-Agent": "facenormals"})
-            with urllib.request.urlopen(request, timeout=timeout) as response:
-                total = int(response.headers.get("Content-Length") or 0)
-                done, reported = 0, -1
-                while True:
-                    chunk = response.read(_CHUNK)
-                    if not chunk:
-                        break
-                    handle.write(chunk)
-                    done += len(chunk)
-                    step = done * 10 // total if total else done // (50 * _CHUNK)
-                    if progress is not None and step != reported:
-                        reported = step
-                        size = f"{done / 1e6:.0f} / {total / 1e6:.0f} MB" if total else f"{done / 1e6:.0f} MB"
-                        progress(f"  {size}")
-                if total and done < total:
-                    raise http.client.IncompleteRead(b"", total - done)
-        if not zipfile.is_zipfile(part):  # cut short by a server that sent no length
-            raise ValueError(f"the download ({done} bytes) is not a complete zip archive")
-        publish(part, target)
-    except BaseException as error:
-        part.unlink(missing_ok=True)
-        if isinstance(error, (OSError, http.client.HTTPException, ValueError)):
-            reason = getattr(error, "reason", None) or error
-            raise FetchError(
-                f"could not download ICT-FaceKit from {url} ({type(error).__name__}: {reason}); "
-                f"download it elsewhere (the repository zip or a clone of https://github.com/ICT-VGL/ICT-FaceKit) "
-                f"and run `{FROM_HINT}`"
-            ) from error
-        raise
+        with atomic_write(target) as part:
+            with open(part, "wb") as handle:
+                request = urllib.request.Request(url, headers={"User-Agent": "facenormals"})
+                with urllib.request.urlopen(request, timeout=timeout) as response:
+                    total = int(response.headers.get("Content-Length") or 0)
+                    done, reported = 0, -1
+                    while True:
+                        chunk = response.read(_CHUNK)
+                        if not chunk:
+                            break
+                        handle.write(chunk)
+                        done += len(chunk)
+                        step = done * 10 // total if total else done // (50 * _CHUNK)
+                        if progress is not None and step != reported:
+                            reported = step
+                            size = f"{done / 1e6:.0f} / {total / 1e6:.0f} MB" if total else f"{done / 1e6:.0f} MB"
+                            progress(f"  {size}")
+                    if total and done < total:
+                        raise http.client.IncompleteRead(b"", total - done)
+            if not zipfile.is_zipfile(part):  # cut short by a server that sent no length
+                raise ValueError(f"the download ({done} bytes) is not a complete zip archive")
+    except (OSError, http.client.HTTPException, ValueError) as error:  # the temporary file is gone
+        reason = getattr(error, "reason", None) or error
+        raise FetchError(
+            f"could not download ICT-FaceKit from {url} ({type(error).__name__}: {reason}); "
+            f"download it elsewhere (the repository zip or a clone of https://github.com/ICT-VGL/ICT-FaceKit) "
+            f"and run `{FROM_HINT}`"
+        ) from error
 
 
 def _report_partial(archive: Path, progress: Callable[[str], object] | None) -> None:

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+
+from facenormals.core.check import environment_integer
 
 __all__ = ["DistContext", "init_distributed", "resolve_precision"]
 
@@ -34,16 +35,6 @@ class DistContext:
         return self.world_size > 1
 
 
-def _env_int(name: str, default: int) -> int:
-    value = os.environ.get(name)
-    if value is None or value == "":
-        return default
-    try:
-        return int(value)
-    except ValueError:
-        raise ValueError(f"${name}: expected an integer, got {value!r}") from None
-
-
 def init_distributed(device: str = "auto") -> DistContext:
     """Read ``torchrun``'s ``RANK``/``WORLD_SIZE``/``LOCAL_RANK`` and join the process group.
 
@@ -56,7 +47,8 @@ def init_distributed(device: str = "auto") -> DistContext:
     Raises:
         ValueError: on an unknown device or CUDA requested where there is none.
     """
-    rank, world, local = _env_int("RANK", 0), _env_int("WORLD_SIZE", 1), _env_int("LOCAL_RANK", 0)
+    rank, world = environment_integer("RANK", 0), environment_integer("WORLD_SIZE", 1)
+    local = environment_integer("LOCAL_RANK", 0)
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
     if device != "cpu" and not device.startswith("cuda"):
