@@ -292,7 +292,8 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     names = list(view_names) if view_names is not None else [f"view {v}" for v in range(V)]
     if len(names) != V:
         raise ValueError(f"view_names: expected one per view ({V}), got {len(names)}")
-    for name, count in zip(names, torch.isfinite(inputs.landmarks).all(-1).sum(1).tolist()):
+    used = torch.isfinite(inputs.landmarks).all(-1).sum(1).tolist()  # landmarks the fit gets, per view
+    for name, count in zip(names, used):
         if count < 4:
             raise NoFaceError(f"{name}: the network found {count} of the model's {len(model.landmark_names)} "
                               "landmarks, too few (< 4) to pre-align a head: is there a face in its crop? (a "
@@ -302,7 +303,6 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
         fit.prealignment_rms_px = inputs.prealignment.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
-    used = torch.isfinite(inputs.landmarks).all(-1).sum(1).tolist()
     dropped = inputs.dropped.sum(1).tolist()
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])

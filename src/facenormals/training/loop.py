@@ -155,12 +155,13 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     if config.threads is not None and ctx.device.type == "cpu":
         torch.set_num_threads(config.threads)
     out = Path(config.out)
+    last = out / "last.pt"
     autocast_dtype = resolve_precision(config.precision, ctx.device)
     if dataset is None:
         dataset = _open_dataset(config.data, config, with_maps=False)
     if holdout is None and config.holdout and ctx.is_main:
         holdout = _open_dataset(config.holdout, config, with_maps=False)
-    if config.init is not None and not (out / "last.pt").exists() and not Path(config.init).is_file():
+    if config.init is not None and not last.exists() and not Path(config.init).is_file():
         raise FileNotFoundError(f"init: {config.init}: no such weight file")
     if ctx.is_main:  # only now: a run refused for its data or --init leaves no empty folder
         out.mkdir(parents=True, exist_ok=True)
@@ -170,7 +171,6 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     ema = copy.deepcopy(net).eval().requires_grad_(False)
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     step, samples_seen = 0, 0
-    last = out / "last.pt"
     if ctx.is_main:  # checkpoint-sized temporaries of runs killed while saving
         for stale in out.glob(f".last.pt.*{PART}*"):
             stale.unlink(missing_ok=True)
@@ -214,7 +214,11 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                         persistent_workers=config.workers > 0, worker_init_fn=_ignore_stop_signals)
     augment = PhotoAugmentation().to(ctx.device)
 
+    saved_step = step if last.exists() else None  # the step of the checkpoint a failed run can resume from
+
     def checkpoint() -> None:
+        nonlocal saved_step
+        saved_step = step  # every rank knows what rank 0 wrote
         if ctx.is_main:
             save_checkpoint(last, {
                 "format": "facenormals-train", "config": config.to_dict(), "step": step,
@@ -276,8 +280,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             if ctx.distributed:
                 torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
             if flags[2]:
-                advice = (f"lower --lr, or resume from the last checkpoint {last} (step "
-                          f"{load_checkpoint(last)['step']})" if last.is_file() else "lower --lr")
+                advice = (f"lower --lr, or resume from the last checkpoint {last} (step {saved_step})"
+                          if saved_step is not None else "lower --lr")
                 raise FloatingPointError(f"step {step}: the loss is not finite on some rank ({float(loss.detach())} "
                                          f"here); {advice}")
             if flags[0] or flags[1]:
