@@ -98,6 +98,49 @@ def test_robust_pose_ignores_spurious_landmarks(init):
         prealign_pose(uv, points, K, robust_scale=0.0)
 
 
+#: The shipped network's detections on a synthetic ICT head at 22.9° of yaw (seed 1, index 0, the
+#: compose tutorial's sample), in crop pixels: both outer eye corners sit on the other eye's inner
+#: corner (19.5 and 23.0 px off); the other 15 are within 2.6 px of the truth.
+NETWORK_DETECTIONS_YAW_23 = {
+    "right_eye_outer": (37.3, 70.5), "right_eye_inner": (24.5, 70.9), "left_eye_inner": (37.2, 70.6),
+    "left_eye_outer": (24.4, 70.9), "nose_bridge": (28.5, 69.1), "nose_tip": (23.7, 83.0),
+    "right_alar": (23.7, 87.3), "left_alar": (31.4, 87.4), "subnasale": (26.1, 87.8),
+    "right_mouth_corner": (21.2, 95.4), "left_mouth_corner": (34.2, 97.5), "upper_lip": (25.4, 91.3),
+    "lower_lip": (26.7, 101.7), "chin": (29.1, 110.4), "left_jaw_angle": (56.5, 91.2),
+    "left_ear_lobe": (68.0, 89.1), "left_ear_tragus": (69.2, 84.6),
+}  # fmt: skip
+
+
+def test_robust_pose_leaves_the_basin_two_swapped_eye_corners_make(ict_npz):
+    """Plain least squares puts this 23° head at 77° of yaw, and reweighting from there stays in that
+    basin (74°); the RANSAC start of the robust solve finds the right one."""
+    from facenormals.models import load_ict_npz
+
+    model = load_ict_npz(ict_npz, dtype=torch.float64)
+    landmarks = torch.full((1, len(model.landmark_names), 2), float("nan"), dtype=torch.float64)
+    for name, uv in NETWORK_DETECTIONS_YAW_23.items():
+        landmarks[0, model.landmark_names.index(name)] = torch.tensor(uv, dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    K = torch.tensor([[300.0, 63.5, 63.5]], dtype=torch.float64)
+    plain = prealign_pose(landmarks, points, K)
+    robust = prealign_pose(landmarks, points, K, robust_scale=3.0)
+    assert math.degrees(plain.angles[0, 2]) > 60.0
+    assert abs(math.degrees(robust.angles[0, 2]) - 22.9) < 3.0
+    # the outliers keep their errors: they are what the RANSAC pose leaves out
+    uv, _ = project_points(points[None], robust.rotation, robust.translation, K)
+    error = (uv - landmarks).norm(dim=-1)[0]
+    swapped = [model.landmark_names.index(n) for n in ("right_eye_outer", "left_eye_outer")]
+    assert bool((error[swapped] > 15).all())
+    others = torch.isfinite(error) & ~torch.isin(torch.arange(len(error)), torch.tensor(swapped))
+    assert float(error[others].median()) < 2.0
+    # in a batch with a clean view, each view gets its result alone
+    clean, _, _, _ = observe(load_ict_npz(ict_npz, dtype=torch.float64), -40.0, noise=0.3)
+    both = prealign_pose(torch.cat([landmarks, clean]), points, K.repeat(2, 1), robust_scale=3.0)
+    alone = prealign_pose(clean, points, K, robust_scale=3.0)
+    torch.testing.assert_close(both.angles[0], robust.angles[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(both.angles[1], alone.angles[0], rtol=0, atol=1e-12)
+
+
 def test_reweighting_stops_when_the_weights_settle_per_view(monkeypatch):
     """IRLS stops once no weight moves by more than IRLS_WEIGHT_TOLERANCE; per view, so that a batch
     gives each view exactly its result alone (a clean view stops while an outlier view goes on)."""

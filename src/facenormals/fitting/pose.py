@@ -115,9 +115,11 @@ def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tenso
     return (R.transpose(1, 2) @ camera[..., None])[..., 0] - centroid3
 
 
-def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:
+def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor,
+                ransac_px: float | None = None) -> tuple[Tensor, Tensor]:
     """OpenCV SQPnP poses ``(B, 6)`` as LM starts, and ``(B,)`` where OpenCV gave one (a failed view
-    gets zeros there, and the caller gives it the yaw starts)."""
+    gets zeros there). With ``ransac_px``, SQPnP inside OpenCV's RANSAC with that reprojection
+    threshold in pixels (deterministic: OpenCV seeds its generator per call)."""
     import cv2
     import numpy as np
 
@@ -130,7 +132,12 @@ def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tenso
         f, u0, v0 = intrinsics[b].tolist()
         camera = np.array([[f, 0.0, u0], [0.0, f, v0], [0.0, 0.0, 1.0]])
         try:
-            found, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
+            if ransac_px is None:
+                found, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP)
+            else:
+                found, rvec, tvec, _ = cv2.solvePnPRansac(obj, img, camera, None, flags=cv2.SOLVEPNP_SQPNP,
+                                                          reprojectionError=ransac_px, iterationsCount=100,
+                                                          confidence=0.999)
         except cv2.error:
             continue
         if not found or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)) or tvec[2, 0] <= 0:
@@ -141,6 +148,52 @@ def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tenso
         ok[b] = True
     return (torch.tensor(out, dtype=points.dtype, device=points.device),
             torch.tensor(ok, dtype=torch.bool, device=points.device))
+
+
+def _pose_residuals(x: Tensor, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> Tensor:
+    """``(B, L, 2)`` landmark residuals of the poses ``x`` (zero where masked)."""
+    uv, _ = project_points(points, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], intrinsics)
+    return landmark_residuals(uv, targets, mask)
+
+
+def _robust_solve(x: Tensor, status: Tensor, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor,
+                  scale: float, rounds: int, max_iterations: int) -> tuple[Tensor, Tensor]:
+    r"""Cauchy-reweighted solves (IRLS) from two candidates per view, the plain solution ``x`` and
+    OpenCV's RANSAC-SQPnP pose, keeping per view the one of lower Cauchy cost
+    :math:`\sum_j \log(1 + (e_j / \delta)^2)`. A few grossly wrong landmarks (a network's eye
+    corner on the other eye) can pull the plain solve into another basin (a 23° yaw pre-aligned to
+    74°) that reweighting from there does not leave; the RANSAC start does not see them."""
+    batch = x.shape[0]
+    ransac, has_ransac = _pnp_starts(points, targets, mask, intrinsics, ransac_px=2.0 * scale)
+    owner = torch.cat([torch.arange(batch, device=x.device), has_ransac.nonzero().squeeze(1)])
+    x, status = torch.cat([x, ransac[has_ransac]]), torch.cat([status, status[has_ransac]])
+    P, b, m, K = points[owner], targets[owner], mask[owner], intrinsics[owner]
+    # the weights each candidate was last solved with: 1 for the plain solution; none yet for RANSAC's
+    previous = torch.ones_like(b[..., 0])
+    previous[batch:] = math.inf
+    active = torch.ones(owner.shape[0], dtype=torch.bool, device=x.device)
+    for _ in range(rounds):
+        weights = cauchy_weights(_pose_residuals(x, P, b, m, K).norm(dim=-1), scale)
+        # per candidate, so that a batch gives each view its result alone
+        active &= ((weights - previous).abs() * m).amax(-1) > IRLS_WEIGHT_TOLERANCE
+        if not bool(active.any()):
+            break  # converged: the weights each last solve used are those of its solution
+        i = active.nonzero().squeeze(1)
+        previous, sqrt_w = weights, weights[i].sqrt()[..., None]
+        weighted = levenberg_marquardt(
+            lambda z, w=sqrt_w, i=i: (_pose_residuals(z, P[i], b[i], m[i], K[i]) * w).flatten(1), x[i],
+            jacobian_fn=lambda z, w=sqrt_w, i=i: (landmark_pose_jacobian(P[i], z, K[i], m[i])
+                                                  .view(i.shape[0], -1, 2, 6) * w[..., None]).flatten(1, 2),
+            max_iterations=max_iterations, damping=1e-4, ftol=1e-7, xtol=1e-7,
+        )
+        x, status = x.index_copy(0, i, weighted.x), status.index_copy(0, i, weighted.status)
+    error = _pose_residuals(x, P, b, m, K).norm(dim=-1)
+    cost = torch.where(m, torch.log1p((error / scale).square()), torch.zeros_like(error)).sum(-1)
+    cost = torch.where(torch.isfinite(cost) & (status != LMStatus.FAILED), cost, torch.finfo(cost.dtype).max)
+    table = torch.full((batch, owner.shape[0]), math.inf, dtype=cost.dtype, device=cost.device)
+    table[owner, torch.arange(owner.shape[0], device=owner.device)] = cost
+    pick = table.argmin(1)  # ties: the plain solution (listed first)
+    return x[pick], status[pick]
 
 
 def prealign_pose(
@@ -169,12 +222,16 @@ def prealign_pose(
         init: ``"pnp"`` or ``"multistart"``.
         yaw_starts_deg: initial yaw angles in degrees for ``"multistart"``.
         max_iterations: LM iterations per start.
-        robust_scale: if given, up to ``robust_rounds`` more solves from the result, each with
-            Cauchy weights :math:`1 / (1 + (e_j / \delta)^2)` of the landmark errors :math:`e_j`
-            (pixels) at its start (IRLS), so that a few spurious landmarks do not tilt the pose;
-            ``cost`` and ``rms_px`` stay those of the plain errors. (Reweighting the SQPnP start
-            directly, without the plain solve, saves a solve but gave 3 % worse fits to the
-            network's landmarks, whose outliers bias SQPnP.)
+        robust_scale: if given, up to ``robust_rounds`` more solves, each with Cauchy weights
+            :math:`1 / (1 + (e_j / \delta)^2)` of the landmark errors :math:`e_j` (pixels) at its
+            start (IRLS), so that a few spurious landmarks do not tilt the pose. They run from two
+            starts per view, the plain solution and OpenCV's RANSAC-SQPnP pose (inliers within
+            :math:`2\delta`), and the one of lower Cauchy cost :math:`\sum_j \log(1 + (e_j/\delta)^2)`
+            wins: grossly wrong landmarks (a network's eye corner placed on the other eye) can pull
+            the plain solve into a wrong basin that reweighting alone does not leave. ``cost`` and
+            ``rms_px`` stay those of the plain errors. (Reweighting the SQPnP start directly,
+            without the plain solve, saves a solve but gave 3 % worse fits to the network's
+            landmarks, whose outliers bias SQPnP.)
         robust_rounds: the most reweighted solves; they stop once no weight changes by more than
             ``IRLS_WEIGHT_TOLERANCE`` (0.02), e.g. after one solve for clean landmarks.
 
@@ -273,31 +330,13 @@ def prealign_pose(
     pick = table.argmin(1)
     x, status = result.x[pick], result.status[pick]
 
-    def view_residuals(z: Tensor, i: Tensor | slice = slice(None)) -> Tensor:  # (B, L, 2) of the views i
-        uv, _ = project_points(model_points[i], euler_to_rotation_matrix(z[:, :3]), z[:, 3:], intrinsics[i])
-        return landmark_residuals(uv, landmarks[i], mask[i])
-
-    previous = torch.ones_like(landmarks[..., 0])  # the weights of the plain solve
-    active = torch.ones(batch, dtype=torch.bool, device=x.device)
-    for _ in range(robust_rounds if robust_scale is not None else 0):
-        weights = cauchy_weights(view_residuals(x).norm(dim=-1), robust_scale)
-        # per view, so that a batch gives each view its result alone
-        active &= ((weights - previous).abs() * mask).amax(-1) > IRLS_WEIGHT_TOLERANCE
-        if not bool(active.any()):
-            break  # converged: the weights each last solve used are those of its solution
-        i = active.nonzero().squeeze(1)
-        previous, sqrt_w = weights, weights[i].sqrt()[..., None]
-        weighted = levenberg_marquardt(
-            lambda z, w=sqrt_w, i=i: (view_residuals(z, i) * w).flatten(1), x[i],
-            jacobian_fn=lambda z, w=sqrt_w, i=i: (landmark_pose_jacobian(model_points[i], z, intrinsics[i], mask[i])
-                                                  .view(i.shape[0], -1, 2, 6) * w[..., None]).flatten(1, 2),
-            max_iterations=max_iterations, damping=1e-4, ftol=1e-7, xtol=1e-7,
-        )
-        x, status = x.index_copy(0, i, weighted.x), status.index_copy(0, i, weighted.status)
+    if robust_scale is not None and robust_rounds > 0:
+        x, status = _robust_solve(x, status, model_points, landmarks, mask, intrinsics, robust_scale, robust_rounds,
+                                  max_iterations)
     # Wrap the angles into (-pi, pi].
     angles = torch.atan2(torch.sin(x[:, :3]), torch.cos(x[:, :3]))
     count = mask.sum(1).to(dtype)
-    final_cost = 0.5 * view_residuals(x).square().flatten(1).sum(1)
+    final_cost = 0.5 * _pose_residuals(x, model_points, landmarks, mask, intrinsics).square().flatten(1).sum(1)
     return PoseEstimate(
         angles=angles.to(out_dtype),
         translation=x[:, 3:].to(out_dtype),
