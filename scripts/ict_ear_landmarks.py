@@ -27,18 +27,19 @@ from facenormals.models import load_model
 from facenormals.models.ict import load_ict_npz
 
 
-def ear_landmarks(mean: np.ndarray, faces: np.ndarray, ibug: dict[str, int]) -> dict[str, int]:
+def ear_landmarks(mean: np.ndarray, faces: np.ndarray, ibug68: list[int]) -> dict[str, int]:
+    """The six ear landmarks from the mean shape, its faces and the 68 iBUG vertex indices."""
     n = len(mean)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     x, y, z = mean.T  # model frame: x to image right, y down, face along -z
-    eye_y = mean[ibug["ibug_36"], 1]
-    mouth_y = mean[ibug["ibug_48"], 1]
+    eye_y = mean[ibug68[36], 1]
+    mouth_y = mean[ibug68[48], 1]
     out = {}
-    for tag, sign, jaw in (("right", -1.0, "ibug_00"), ("left", 1.0, "ibug_16")):
+    for tag, sign, jaw in (("right", -1.0, 0), ("left", 1.0, 16)):
         lateral = sign * x
         band = (y > eye_y - 30.0) & (y < mouth_y) & (lateral > 0)
         apex = int(np.argmax(np.where(band, lateral, -np.inf)))
-        threshold = lateral[ibug[jaw]] + 0.3 * (lateral[apex] - lateral[ibug[jaw]])
+        threshold = lateral[ibug68[jaw]] + 0.3 * (lateral[apex] - lateral[ibug68[jaw]])
         keep = (lateral > threshold) & (y < mouth_y)
         e = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
         graph = scipy.sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
@@ -57,7 +58,7 @@ def ear_landmarks(mean: np.ndarray, faces: np.ndarray, ibug: dict[str, int]) -> 
 
 def main() -> None:
     model = load_ict_npz(sys.argv[1]) if len(sys.argv) > 1 else load_model("ict")
-    picks = ear_landmarks(model.mean.numpy(), model.faces.numpy(), model.landmarks)
+    picks = ear_landmarks(model.mean.numpy(), model.faces.numpy(), model.metadata["landmarks_ibug68"])
     for name, index in picks.items():
         print(f'    "{name}": {index},  # {np.round(model.mean[index].numpy(), 1).tolist()}')
 

@@ -45,9 +45,18 @@ def assert_close(actual, expected, *, rtol: float | None = None, atol: float | N
     )
 
 
+def ict_archive_or_skip() -> Path:
+    """The ICT-FaceKit archive where the library finds it (``$FACENORMALS_ICT``, the cache, then
+    ``../shared/data``, see :func:`facenormals.models.find_ict_archive`); skips where there is none."""
+    from facenormals.models import find_ict_archive
+
+    found = find_ict_archive()
+    if found is None:
+        pytest.skip(f"ICT-FaceKit not found ($FACENORMALS_ICT, the cache, or {ICT_NPZ})")
+    return found
+
+
 @pytest.fixture
 def ict_npz() -> Path:
-    """Path to the shared ICT-FaceKit archive; skips where ../shared is absent."""
-    if not ICT_NPZ.exists():
-        pytest.skip(f"shared data not found at {ICT_NPZ}")
-    return ICT_NPZ
+    """Path to the ICT-FaceKit archive (:func:`ict_archive_or_skip`)."""
+    return ict_archive_or_skip()

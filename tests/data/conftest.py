@@ -8,14 +8,14 @@ import pytest
 
 from facenormals.data import HeadlessGLError, SynthConfig, SyntheticHeadGenerator
 
-from tests.conftest import ICT_NPZ
+from tests.conftest import ict_archive_or_skip
 
 
 def make_generator(spec: str, config: SynthConfig | None = None, grid: int = 2) -> SyntheticHeadGenerator:
     """A generator whose renderer is created now; skips the test without headless OpenGL or ICT."""
-    if spec == "ict" and not ICT_NPZ.exists():
-        pytest.skip(f"shared data not found at {ICT_NPZ}")
-    generator = SyntheticHeadGenerator(str(ICT_NPZ) if spec == "ict" else spec, config, grid=grid)
+    if spec == "ict":
+        spec = str(ict_archive_or_skip())
+    generator = SyntheticHeadGenerator(spec, config, grid=grid)
     try:
         generator.renderer
     except HeadlessGLError as error:

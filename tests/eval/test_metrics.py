@@ -179,16 +179,17 @@ def test_depth_statistics_nan_and_empty():
     assert set(stats.as_dict()) == {"mean", "std", "median", "delta90", "coverage", "count"}
 
 
-def test_large_mesh_speed():
-    """~10k points against ~20k triangles: well under the 1-2 s budget."""
-    import time
-
+def test_large_mesh_against_the_sphere():
+    """~10k points against ~20k triangles (the chunked path): points 1 % outside a sphere of
+    radius 100 lie ~1 mm off its faceted surface along the normal (no timing asserted here; the
+    eval speed is in benchmarks)."""
     vertices, faces = sphere(100.0, subdivisions=5)
     points = vertices * 1.01
     normals = vertex_normals(vertices[None], faces)[0]
-    start = time.perf_counter()
-    point_to_plane_errors(points, normals, vertices, faces)
-    assert time.perf_counter() - start < 2.0
+    errors = point_to_plane_errors(points, normals, vertices, faces)
+    assert errors.shape == (len(points),) and torch.isfinite(errors).all()
+    # a vertex of the icosphere lies on the sphere; its nearest surface point is itself
+    torch.testing.assert_close(errors.abs(), torch.full_like(errors, 1.0), rtol=0, atol=1e-5)
 
 
 @pytest.mark.parametrize(
