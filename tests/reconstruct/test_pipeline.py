@@ -387,21 +387,28 @@ def test_bad_device_names_the_argument(tmp_path):
 def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(monkeypatch):
     from facenormals.reconstruct import pipeline, photos
 
+    calls = []
+
     def fake_predict(net, crops, mirror=True):  # a bright crop is a face with every landmark
+        calls.append(len(crops))
         found = (crops.mean(dim=(1, 2, 3)) > 0.5)[:, None].expand(-1, len(LANDMARK_NAMES))
         return pipeline.NetworkMaps(torch.zeros(len(crops), 3, 128, 128), torch.zeros(len(crops), 24, 128, 128),
                                     torch.zeros(len(crops), 24, 2), found.clone(), seconds=0.0)
 
-    monkeypatch.setattr(pipeline, "predict_maps", fake_predict)
+    monkeypatch.setattr(photos, "predict_maps", fake_predict)
     dark, bright = np.zeros((128, 128, 3), np.uint8), np.full((128, 128, 3), 255, np.uint8)
     stray = PhotoView(crop=dark, box=(0.0, 0.0, 50.0), path="group.jpg")
     stray.alternatives = [PhotoView(crop=bright, box=(10.0, 20.0, 60.0), path="group.jpg")]
     single = PhotoView(crop=dark, box=(0.0, 0.0, 50.0), path="alone.jpg")  # one face: kept as it is
     messages = []
-    picked = photos._pick_faces([stray, single], None, builtin_head_model(), False, messages.append)
+    picked, maps = photos._pick_faces([stray, single], None, builtin_head_model(), False, messages.append)
     assert picked[0] is stray.alternatives[0] and picked[1] is single
     assert messages == ["group.jpg: too few landmarks in the first detected face; using the next one, head crop "
                         "60 px at (10, 20)"]
+    # the maps are those of the picked crops: every crop predicted once (both photos as one batch,
+    # then the alternative), and the fit gets them instead of predicting again
+    assert calls == [2, 1]
+    assert bool(maps.found[0].all()) and not bool(maps.found[1].any())
 
 
 def test_predict_maps_checks_its_crops():
@@ -415,3 +422,20 @@ def test_predict_maps_checks_its_crops():
         predict_maps(net, crops)
     with pytest.raises(ValueError, match=r"crops: expected shape \(V, 3, S, S\)"):
         predict_maps(net, torch.rand(3, 16, 16))
+
+
+def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
+    """Maps given are used as they are (no second prediction); maps of other crops are refused."""
+    from facenormals.nn import NormalLandmarkUNet
+    from facenormals.reconstruct import pipeline, reconstruct_views
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    crops = torch.rand(2, 3, 32, 32)
+    maps = pipeline.predict_maps(net, crops)
+    monkeypatch.setattr(pipeline, "predict_maps", lambda *a, **k: pytest.fail("predicted again"))
+    with pytest.raises(ValueError, match=r"maps: expected the maps of the 1 crops.*got \(2, 3, 32, 32\)"):
+        reconstruct_views(crops[:1], net, builtin_head_model(), maps=maps)
+    maps.found[:] = False  # no landmark in the given maps: the error says so, whatever the network would find
+    maps.landmarks[:] = float("nan")
+    with pytest.raises(ValueError, match="too few"):
+        reconstruct_views(crops, net, builtin_head_model(), maps=maps)

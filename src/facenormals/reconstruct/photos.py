@@ -13,7 +13,8 @@ import torch
 
 from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
-from facenormals.reconstruct.pipeline import PhotoView, Reconstruction, reconstruct_views, write_reconstruction
+from facenormals.reconstruct.pipeline import (NetworkMaps, PhotoView, Reconstruction, landmark_channels, predict_maps,
+                                              reconstruct_views, write_reconstruction)
 
 if TYPE_CHECKING:
     from facenormals.fitting import FitWeights
@@ -55,25 +56,32 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
     return views[0]
 
 
-def _pick_faces(views: list[PhotoView], net, model, mirror: bool, log: Callable[[str], None]) -> list[PhotoView]:
-    """For a photo with several detected faces, the first whose crop shows the network enough (>= 4)
-    of ``model``'s landmarks (a stray detection can rank first); photos with one face are kept."""
-    from facenormals.reconstruct.pipeline import landmark_channels, predict_maps
-
+def _pick_faces(views: list[PhotoView], net, model, mirror: bool,
+                log: Callable[[str], None]) -> tuple[list[PhotoView], NetworkMaps]:
+    """The network's maps of every photo's first detected face (one batch); for a photo whose first
+    face shows the network too few (< 4) of ``model``'s landmarks (a stray detection can rank first),
+    the first of its other detected faces that shows enough, with its maps."""
     channels = landmark_channels(model)
-    picked = []
-    for view in views:
-        choice = view
-        for candidate in ([view, *view.alternatives] if view.alternatives else []):
-            crop = torch.from_numpy(candidate.crop).permute(2, 0, 1)[None].float() / 255.0
-            if int(predict_maps(net, crop, mirror=mirror).found[0, channels].sum()) >= 4:
-                choice = candidate
+
+    def predict(crops: list[np.ndarray]) -> NetworkMaps:
+        return predict_maps(net, torch.from_numpy(np.stack(crops)).permute(0, 3, 1, 2).float() / 255.0, mirror=mirror)
+
+    maps = predict([v.crop for v in views])
+    picked = list(views)
+    for i, view in enumerate(views):
+        if not view.alternatives or int(maps.found[i, channels].sum()) >= 4:
+            continue
+        for candidate in view.alternatives:
+            other = predict([candidate.crop])
+            if int(other.found[0, channels].sum()) >= 4:
+                picked[i] = candidate
+                for field in ("normal_maps", "landmark_maps", "landmarks", "found"):
+                    getattr(maps, field)[i] = getattr(other, field)[0]
+                maps.seconds += other.seconds
+                log(f"{view.path}: too few landmarks in the first detected face; using the next one, head crop "
+                    f"{candidate.box[2]:.0f} px at ({candidate.box[0]:.0f}, {candidate.box[1]:.0f})")
                 break
-        if choice is not view:
-            log(f"{view.path}: too few landmarks in the first detected face; using the next one, head crop "
-                f"{choice.box[2]:.0f} px at ({choice.box[0]:.0f}, {choice.box[1]:.0f})")
-        picked.append(choice)
-    return picked
+    return picked, maps
 
 
 def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
@@ -145,12 +153,12 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         f"network on {device}")
 
     t = time.perf_counter()
-    views = _pick_faces(views, net, model, mirror, log)
+    views, maps = _pick_faces(views, net, model, mirror, log)
     crops = torch.from_numpy(np.stack([v.crop for v in views])).permute(0, 3, 1, 2).float() / 255.0
     if fit_weights is not None:
         fit_options["weights"] = fit_weights
     maps, fit = reconstruct_views(crops, net, model, log=log, mirror=mirror, view_names=[str(p) for p in paths],
-                                  **fit_options)
+                                  maps=maps, **fit_options)
     timings["network"] = maps.seconds
     timings["fit"] = float(fit.timings.get("total_s", time.perf_counter() - t - maps.seconds))
     timings["reconstruct"] = time.perf_counter() - t

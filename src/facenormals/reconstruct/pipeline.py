@@ -253,7 +253,7 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
 def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableModel,
                       focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
                       mirror: bool = True, drop_hidden: bool = True, view_names: Sequence[str] | None = None,
-                      **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
+                      maps: NetworkMaps | None = None, **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
     """Predict the maps of ``V`` crops of one person and fit one shared head to all of them.
 
     Args:
@@ -267,6 +267,8 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
             (:func:`~facenormals.fitting.drop_hidden_landmarks`), and fit from that pre-alignment;
             ``maps.found`` and ``maps.landmarks`` then hold the landmarks the fit uses.
         view_names: how error messages name the views (e.g. their files); default ``view 0``, ...
+        maps: ``predict_maps(net, crops, mirror=mirror)`` if already computed (it is then used, and
+            changed as ``drop_hidden`` says, instead of predicting again).
         **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
             :func:`network_fit_weights` of ``net``).
 
@@ -276,8 +278,12 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     """
     log = log or (lambda message: None)
     fit_options.setdefault("weights", network_fit_weights(net))
-    maps = predict_maps(net, crops, mirror=mirror)
     V, _, S, _ = crops.shape
+    if maps is None:
+        maps = predict_maps(net, crops, mirror=mirror)
+    elif tuple(maps.normal_maps.shape) != (V, 3, S, S):
+        raise ValueError(f"maps: expected the maps of the {V} crops, normal maps of shape {(V, 3, S, S)}, "
+                         f"got {tuple(maps.normal_maps.shape)}")
     log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
         f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
     inputs = fit_inputs(maps, model, focal, drop_hidden and "initial_pose" not in fit_options)
