@@ -60,7 +60,7 @@ def main() -> None:
     generator = SyntheticHeadGenerator(model, SynthConfig(expression_probability=0.0))
     rng = np.random.default_rng(args.seed)
     side_rng = np.random.default_rng(args.seed + 1000)  # apart, so the other settings keep their yaws
-    rows = {k: [] for k in ("mean head", "single view", "three views", "side view")}
+    rows = {k: {} for k in ("mean head", "single view", "three views", "side view")}  # head index -> scores
     start = time.perf_counter()
     failures = []
     for i in range(args.heads):
@@ -71,32 +71,32 @@ def main() -> None:
         side_yaw = math.radians(side_rng.choice([-1.0, 1.0]) * side_rng.uniform(50, 75))
         side = generator.generate(args.seed, [index], angles=[(0.0, 0.0, side_yaw)])
         truth = model(torch.from_numpy(single.shape_coeffs))[0]
-        rows["mean head"].append(score(model, model.mean, truth))
+        rows["mean head"][i] = score(model, model.mean, truth)
         for name, batch in (("single view", single), ("three views", three), ("side view", side)):
             try:
                 _, fit = reconstruct_views(images(batch), net, model)
             except ValueError as error:  # e.g. too few landmarks detected in a view
                 failures.append(f"head {i} {name}: {error}")
                 continue
-            rows[name].append(score(model, fit.vertices[0], truth))
-        print(f"head {i + 1}/{args.heads}: single {rows['single view'][-1]['p2p sim']:.3f} mm, three "
-              f"{rows['three views'][-1]['p2p sim']:.3f} mm, side {rows['side view'][-1]['p2p sim']:.3f} mm, "
-              f"mean head {rows['mean head'][-1]['p2p sim']:.3f} mm ({time.perf_counter() - start:.0f} s)", flush=True)
+            rows[name][i] = score(model, fit.vertices[0], truth)
+        scores = ", ".join(f"{name} " + (f"{rows[name][i]['p2p sim']:.3f} mm" if i in rows[name] else "failed")
+                           for name in rows)
+        print(f"head {i + 1}/{args.heads}: {scores} ({time.perf_counter() - start:.0f} s)", flush=True)
 
-    base = {k: statistics.mean(r[k] for r in rows["mean head"]) for _, _, k in KEYS}
     lines = [
         f"Network weights: `{args.weights or 'shipped'}` (step {net.metadata.get('step')}, "
         f"{net.metadata.get('samples_seen')} training samples seen); {args.heads} held-out heads, "
         f"model {model.name}; {len(failures)} failed fits.",
         "",
         "| setting | p2p RMSE, similarity | correspondence RMSE, similarity | p2p RMSE, rigid | "
-        "correspondence RMSE, rigid | ratio to mean head (p2p / corr, similarity) |",
+        "correspondence RMSE, rigid | ratio to mean head (p2p / corr, similarity; over the same heads) |",
         "|---|---|---|---|---|---|",
     ]
     for name, values in rows.items():
         if not values:
             continue
-        m = {k: statistics.mean(r[k] for r in values) for _, _, k in KEYS}
+        m = {k: statistics.mean(r[k] for r in values.values()) for _, _, k in KEYS}
+        base = {k: statistics.mean(rows["mean head"][i][k] for i in values) for _, _, k in KEYS}
         lines.append(f"| {name} ({len(values)}) | {m['p2p sim']:.3f} | {m['corr sim']:.3f} | {m['p2p rigid']:.3f} | "
                      f"{m['corr rigid']:.3f} | {m['p2p sim'] / base['p2p sim']:.2f} / "
                      f"{m['corr sim'] / base['corr sim']:.2f} |")

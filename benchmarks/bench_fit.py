@@ -6,26 +6,48 @@
    and analytic Jacobian, in the same run;
 4. B = 16 subjects fitted as one batch vs 16 sequential fits.
 
-    python benchmarks/bench_fit.py [--heads 10] [--model ict] [--batch 16] [--threads 1]
+    python benchmarks/bench_fit.py [--heads 10] [--model ict] [--batch 16] [--threads 1] [--repeats 5]
 
-On a machine shared with other CPU-heavy jobs, ``--threads 1`` avoids OpenMP threads spinning
-against them (2 threads on 2 busy cores are several times slower than 1).
+Timings are medians; the solvers compared with each other run interleaved, ``--repeats`` times
+each, so that load on the machine hits them alike. ``--threads N`` sets torch's threads *and* the
+BLAS/OpenMP pools that numpy and scipy use (set before they load): scipy's solver calls the same
+torch residuals, and two thread pools on two cores fight. On a machine shared with other
+CPU-heavy jobs, ``--threads 1`` avoids threads spinning against them.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import time
 
-import torch
-from scipy.optimize import least_squares
 
-from facenormals.fitting import HeadFitProblem, fit_head, prealign_pose
-from facenormals.fitting.oracle import render_oracle_views
-from facenormals.models import load_model
-from facenormals.optim import levenberg_marquardt
+def arguments() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--heads", type=int, default=10)
+    parser.add_argument("--model", default="ict")
+    parser.add_argument("--batch", type=int, default=16)
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and BLAS threads (default: the libraries' choice)")
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved runs of each compared solver")
+    args = parser.parse_args()
+    if args.threads:  # before numpy, scipy and torch create their thread pools
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+    return args
+
+
+ARGS = arguments() if __name__ == "__main__" else None
+
+import torch  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
+
+from facenormals.fitting import HeadFitProblem, fit_head, prealign_pose  # noqa: E402
+from facenormals.fitting.oracle import render_oracle_views  # noqa: E402
+from facenormals.models import load_model  # noqa: E402
+from facenormals.optim import levenberg_marquardt  # noqa: E402
 
 
 def timed(fn):
@@ -34,17 +56,23 @@ def timed(fn):
     return time.perf_counter() - start, out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--heads", type=int, default=10)
-    parser.add_argument("--model", default="ict")
-    parser.add_argument("--batch", type=int, default=16)
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    args = parser.parse_args()
+def interleaved(runs: dict, repeats: int) -> dict:
+    """``{name: (median seconds, last output)}`` of the callables in ``runs``, run in turn ``repeats`` times."""
+    times = {name: [] for name in runs}
+    outputs = {}
+    for _ in range(repeats):
+        for name, fn in runs.items():
+            t, outputs[name] = timed(fn)
+            times[name].append(t)
+    return {name: (statistics.median(times[name]), outputs[name]) for name in runs}
+
+
+def main(args: argparse.Namespace) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     model = load_model(args.model, dtype=torch.float32)
-    print(f"machine: {platform.machine()}, torch {torch.__version__} ({torch.get_num_threads()} threads); "
+    blas = os.environ.get("OPENBLAS_NUM_THREADS", "library default")
+    print(f"machine: {platform.machine()}, torch {torch.__version__} ({torch.get_num_threads()} threads, BLAS {blas}); "
           f"model {model.name}: {model.num_vertices} vertices, {model.num_shape} shape components")
     g = torch.Generator().manual_seed(0)
     heads = []
@@ -76,10 +104,6 @@ def main() -> None:
     problem.update_visibility(x0, min_facing=0.2)
     problem.update_robust_weights(x0, 0.1, landmark_scale=3.0)
     options = dict(max_iterations=100, ftol=1e-8, xtol=1e-8, damping=1e-4, jacobian_dtype=torch.float32)
-    ours_t, ours = timed(lambda: levenberg_marquardt(
-        problem.residuals, x0, jacobian_fn=lambda z: problem.jacobian(z, torch.float32), **options))
-    fused_t, fused = timed(lambda: levenberg_marquardt(
-        problem.residuals, x0, normal_equations_fn=lambda z, r: problem.normal_equations(z, r, torch.float32), **options))
 
     def fun(x):
         return problem.residuals(torch.from_numpy(x).float()[None])[0].double().numpy()
@@ -87,26 +111,42 @@ def main() -> None:
     def jac(x):
         return problem.jacobian(torch.from_numpy(x).float()[None])[0].double().numpy()
 
-    scipy_t, sp = timed(lambda: least_squares(fun, x0[0].double().numpy(), jac=jac, ftol=1e-8, xtol=1e-8))
-    ours_cost = float(0.5 * problem.residuals(ours.x).double().square().sum())
+    solvers = interleaved({
+        "jacobian_fn": lambda: levenberg_marquardt(
+            problem.residuals, x0, jacobian_fn=lambda z: problem.jacobian(z, torch.float32), **options),
+        "normal_equations_fn": lambda: levenberg_marquardt(
+            problem.residuals, x0, normal_equations_fn=lambda z, r: problem.normal_equations(z, r, torch.float32),
+            **options),
+        "scipy": lambda: least_squares(fun, x0[0].double().numpy(), jac=jac, ftol=1e-8, xtol=1e-8),
+    }, args.repeats)
+    (ours_t, ours), (fused_t, fused), (scipy_t, sp) = solvers.values()
+    cost = {name: float(0.5 * problem.residuals(r.x).double().square().sum()) for name, r in
+            (("jacobian_fn", ours), ("normal_equations_fn", fused))}
     rows.append((f"one LM round, facenormals, jacobian_fn ({int(ours.iterations[0])} iterations)", ours_t * 1e3, ""))
     rows.append((f"one LM round, facenormals, normal_equations_fn ({int(fused.iterations[0])} iterations)",
                  fused_t * 1e3, ""))
     rows.append((f"one LM round, scipy least_squares trf ({sp.njev} Jacobians)", scipy_t * 1e3, ">= 10x ours"))
 
-    # Analytic vs autograd Jacobian of the same residuals.
-    analytic_t = statistics.median(timed(lambda: problem.jacobian(x0, torch.float32))[0] for _ in range(5))
-    autograd_t = statistics.median(timed(lambda: torch.func.jacfwd(problem.residuals)(x0))[0] for _ in range(2))
-    rows.append(("Jacobian, analytic", analytic_t * 1e3, ""))
+    # Analytic vs autograd Jacobian of the same residuals, each at a new x (the problem caches the
+    # geometry of the last x, which the residuals before a Jacobian would have computed).
+    fresh = (x0 + 1e-6 * k for k in range(1, 100))
+    analytic_t = statistics.median(timed(lambda: problem.jacobian(next(fresh), torch.float32))[0] for _ in range(5))
+    autograd_t = statistics.median(timed(lambda: torch.func.jacfwd(problem.residuals)(next(fresh)))[0]
+                                   for _ in range(2))
+    rows.append(("Jacobian, analytic (geometry computed too)", analytic_t * 1e3, ""))
     rows.append(("Jacobian, autograd (torch.func.jacfwd)", autograd_t * 1e3, ""))
 
-    # 4. Batch of subjects.
+    # 4. Batch of subjects (after a warm-up of both), interleaved.
     batch = heads[: args.batch]
     maps = torch.cat([b.normal_maps for b in batch])
     lms = torch.cat([b.landmarks for b in batch])
     K = torch.cat([b.intrinsics for b in batch])
-    batch_t, _ = timed(lambda: fit_head(maps, lms, model, intrinsics=K))
-    seq_t, _ = timed(lambda: [fit_head(b.normal_maps, b.landmarks, model, intrinsics=b.intrinsics) for b in batch])
+    fit_head(maps[:2], lms[:2], model, intrinsics=K[:2])
+    batched = interleaved({
+        "batch": lambda: fit_head(maps, lms, model, intrinsics=K),
+        "sequential": lambda: [fit_head(b.normal_maps, b.landmarks, model, intrinsics=b.intrinsics) for b in batch],
+    }, max(1, args.repeats // 2))
+    (batch_t, batch_fit), (seq_t, seq_fits) = batched.values()
     rows.append((f"B={args.batch} subjects as one batch, per subject", batch_t / args.batch * 1e3, ""))
     rows.append((f"{args.batch} sequential fits, per subject", seq_t / args.batch * 1e3, ""))
 
@@ -115,10 +155,15 @@ def main() -> None:
         print(f"| {name} | {ms:.1f} | {target} |")
     print(f"\nfull fit: median {iterations} LM iterations")
     print(f"scipy / ours (normal_equations_fn) on the same round: {scipy_t / fused_t:.1f}x")
-    print(f"scipy / ours (jacobian_fn) on the same round: {scipy_t / ours_t:.1f}x; final energies {ours_cost:.4f} (ours) vs "
-          f"{float(sp.cost):.4f} (scipy), relative difference {abs(ours_cost - sp.cost) / sp.cost:.1e}")
-    print(f"batch throughput vs sequential: {seq_t / batch_t:.2f}x")
+    print(f"scipy / ours (jacobian_fn) on the same round: {scipy_t / ours_t:.1f}x")
+    for name, value in cost.items():
+        print(f"final energy, {name}: {value:.4f} vs {float(sp.cost):.4f} (scipy), relative difference "
+              f"{abs(value - sp.cost) / sp.cost:.1e}")
+    batch_iterations = batch_fit.iterations.float().mean()
+    seq_iterations = torch.cat([f.iterations for f in seq_fits]).float().mean()
+    print(f"batch throughput vs sequential: {seq_t / batch_t:.2f}x (mean LM iterations per subject "
+          f"{float(batch_iterations):.1f} in the batch, {float(seq_iterations):.1f} sequential)")
 
 
 if __name__ == "__main__":
-    main()
+    main(ARGS)

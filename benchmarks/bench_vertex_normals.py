@@ -18,14 +18,13 @@ import platform
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from facenormals.mesh import VertexNormals, vertex_normals
+from facenormals.models import find_ict_archive
 
-ICT_NPZ = Path(__file__).resolve().parents[2] / "shared/data/ict_facekit/ict_face_head.npz"
 TARGETS_MS = {1: 3.0, 32: 1.0}
 
 
@@ -51,13 +50,15 @@ def main() -> int:
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 32])
     args = parser.parse_args()
 
-    if not ICT_NPZ.exists():
-        print(f"error: the ICT head is needed at {ICT_NPZ} (the shared data folder beside the repo)", file=sys.stderr)
+    ict = find_ict_archive()
+    if ict is None:
+        print("error: the ICT head is needed ($FACENORMALS_ICT, `facenormals models fetch ict`, or the shared "
+              "data folder beside the repository)", file=sys.stderr)
         return 1
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    data = np.load(ICT_NPZ)
+    data = np.load(ict)
     mean = torch.from_numpy(np.ascontiguousarray(data["mean"], dtype=np.float32)).to(device)
     faces = torch.from_numpy(data["faces"].astype(np.int64)).to(device)
 

@@ -1,4 +1,5 @@
-"""Every script in ``benchmarks/`` imports and parses its arguments (``--help``).
+"""Every script in ``benchmarks/`` imports and parses its arguments (``--help``), and runs through at
+its smallest size (no timing is checked: the numbers go to docs/performance.md).
 
 The benchmarks are run by hand (their results go to docs/performance.md, never into tests), so an
 API change that breaks one of their imports would otherwise go unnoticed until the next measurement.
@@ -24,3 +25,53 @@ def test_benchmark_script_imports_and_shows_its_usage(script):
     done = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.startswith("usage:")
+
+
+def _has_headless_gl() -> bool:
+    from facenormals.data import HeadlessGLError, select_gl_platform
+
+    try:
+        select_gl_platform()
+    except HeadlessGLError:
+        return False
+    return True
+
+
+def _has_ict() -> bool:
+    from facenormals.models import find_ict_archive
+
+    return find_ict_archive() is not None
+
+
+#: The smallest run of each benchmark that goes through its whole body (``--help`` alone stops at
+#: argparse), and what it needs. ``network_metrics.py`` and ``visibility_breakdown.py`` need a
+#: rendered held-out set and stay at ``--help``.
+SMOKE = {
+    "accuracy_network.py": (["--heads", "1", "--model", "builtin"], "gl"),
+    "accuracy_oracle.py": (["--heads", "1", "--model", "builtin"], None),
+    "bench_fit.py": (["--heads", "1", "--batch", "2", "--repeats", "1", "--model", "builtin", "--threads", "1"], None),
+    "bench_fit_batch.py": (["--device", "cpu", "--batch", "2", "--repeats", "1", "--model", "builtin"], None),
+    "bench_lm_head.py": (["--repeats", "1", "--batch", "2", "--model", "builtin"], None),
+    "bench_reconstruct.py": (["--repeats", "1", "--model", "builtin"], None),
+    "bench_synth.py": (["--workers", "1", "--count", "4", "--small", "2", "--model", "builtin", "--skip-single"], "gl"),
+    "bench_vertex_normals.py": (["--repeats", "1", "--warmup", "0", "--batches", "1"], "ict"),
+    "tune_network_fit.py": (["--heads", "1", "--priors", "1"], "gl+ict"),
+}
+
+
+def test_every_smoke_run_names_a_benchmark():
+    assert set(SMOKE) <= {p.name for p in BENCHMARKS}
+
+
+@pytest.mark.parametrize("name", sorted(SMOKE))
+def test_benchmark_runs_through_at_its_smallest(name, tmp_path):
+    argv, needs = SMOKE[name]
+    if needs and "gl" in needs and not _has_headless_gl():
+        pytest.skip("no headless OpenGL")
+    if needs and "ict" in needs and not _has_ict():
+        pytest.skip("ICT-FaceKit not found")
+    script = BENCHMARKS[0].parent / name
+    done = subprocess.run([sys.executable, str(script), *argv], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
+    assert "nan" not in done.stdout.lower().replace("nan,", "")  # a benchmark that measured nothing prints NaN
