@@ -62,8 +62,8 @@ def run_page(page: str, tmp_path: Path) -> tuple[int, int]:
                 exec(compile(code, f"{page} block", "exec"), namespace)
                 ran[0] += 1
             elif (argv := runnable_command(code)) is not None:
-                cli = [sys.executable, "-c", "import sys; from facenormals.cli import main; sys.exit(main())"]
-                run = subprocess.run(cli + argv[1:], capture_output=True, text=True, timeout=600)
+                run = subprocess.run([sys.executable, "-m", "facenormals", *argv[1:]], capture_output=True, text=True,
+                                     timeout=600)
                 assert run.returncode == 0, f"{page}: `{code.strip()}` exited {run.returncode}:\n{run.stderr}"
                 ran[1] += 1
     return ran[0], ran[1]

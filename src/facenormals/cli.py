@@ -21,7 +21,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     _check_writable(Path(args.out), "--out", folder=True)
     model = load_model(args.model)
     if model.name == "builtin" and args.model == "auto":
-        print("ICT-FaceKit not found: using the built-in procedural head (see docs/installation.md)")
+        print("ICT-FaceKit not found: using the built-in procedural head (`facenormals models fetch ict` gets it)")
     report = run_demo(model, seed=args.seed, out_dir=args.out)
     print()
     print("face region, after similarity alignment   point-to-plane RMSE   correspondence RMSE")
@@ -241,7 +241,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="facenormals", description=__doc__,
+        prog="facenormals", description="Reconstruct 3D heads from photos with predicted normals and landmarks.",
         epilog="Errors print one line and exit 1 (set FACENORMALS_TRACEBACK=1 for the traceback); Ctrl-C exits 130.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="recover a random synthetic head from its normal map and landmarks")

@@ -2,9 +2,10 @@
 
 Findings about the cv2 reference (opencv-contrib-python-headless 5.0.0, float32 maps):
 
-* ``cv2.remap`` with float32 maps evaluates the Keys weights in floating point (OpenCV 4.x rounded
-  float maps to 1/32 pixel first); on float32 images it agrees with ``sample_bicubic`` to ~3e-7
-  everywhere, border and outside points included, so no interior restriction is needed there.
+* ``cv2.remap`` with float32 maps evaluates the Keys weights in floating point (OpenCV 4.x rounds
+  float maps to 1/32 pixel first, so with OpenCV 4 the points compared are put on that grid:
+  :func:`on_cv2_grid`); on float32 images it agrees with ``sample_bicubic`` to ~3e-7 everywhere,
+  border and outside points included, so no interior restriction is needed there.
 * On float64 images opencv 5.0.0 is exact in the interior but returns 0 for every point whose 4x4
   support touches the border (a bug of its 64-bit path), so float64 is compared on interior points
   only, and at the border against cv2 on a float32 copy of the image.
@@ -62,6 +63,14 @@ def cv2_sample(image: torch.Tensor, pixels: torch.Tensor) -> np.ndarray:
     return np.concatenate(channels, axis=1)
 
 
+def on_cv2_grid(pixels: torch.Tensor) -> torch.Tensor:
+    """``pixels`` where ``cv2.remap`` evaluates them exactly: as they are with OpenCV >= 5, on the
+    1/32-pixel grid that OpenCV 4 rounds float maps to."""
+    if int(cv2.__version__.split(".")[0]) >= 5:
+        return pixels
+    return torch.round(pixels * 32) / 32
+
+
 def random_pixels(batch, n, H, W, margin, seed=0, dtype=torch.float32):
     """Uniform pixels in [-margin, W-1+margin] x [-margin, H-1+margin] (margin < 0 shrinks)."""
     g = torch.Generator().manual_seed(seed)
@@ -81,7 +90,7 @@ def test_against_cv2_float32_everywhere(channels, device):
     B, H, W = 2, 13, 17
     image = random_image(B, channels, H, W, torch.float32, device)
     # the whole image plus 3 pixels of replicated border on every side
-    pixels = random_pixels(B, 500, H, W, margin=3.0).to(device)
+    pixels = on_cv2_grid(random_pixels(B, 500, H, W, margin=3.0)).to(device)
     values, inside = sample_bicubic(image, pixels)
     assert values.shape == (B, 500, channels) and inside.shape == (B, 500)
     for b in range(B):
@@ -97,13 +106,13 @@ def test_against_cv2_float64(device):
     g = torch.Generator().manual_seed(3)
     u = 1 + torch.rand(B, 400, generator=g) * (W - 3 - 1e-3)
     v = 1 + torch.rand(B, 400, generator=g) * (H - 3 - 1e-3)
-    pixels = torch.stack([u, v], -1).float().double().to(device)
+    pixels = on_cv2_grid(torch.stack([u, v], -1).float().double()).to(device)
     values, _ = sample_bicubic(image, pixels)
     for b in range(B):
         ref = cv2_sample(image[b], pixels[b])
         assert np.abs(values[b].cpu().numpy() - ref).max() < 1e-6
     # near and beyond the border: cv2 on a float32 copy of the image
-    pixels = random_pixels(B, 400, H, W, margin=3.0, dtype=torch.float64).to(device)
+    pixels = on_cv2_grid(random_pixels(B, 400, H, W, margin=3.0, dtype=torch.float64)).to(device)
     values, _ = sample_bicubic(image, pixels)
     for b in range(B):
         ref = cv2_sample(image[b].float(), pixels[b])
