@@ -1,7 +1,8 @@
 """The paper's pipeline step by step on a rendered sample: maps -> landmarks -> pre-alignment -> fit -> mesh.
 
-Until the trained network ships, the normal map N and the landmarks come from an exact rendering of a
-random head (oracle maps); the rest is exactly what `facenormals reconstruct` will run on predictions.
+The normal map N and the landmarks come from an exact rendering of a random head (oracle maps),
+which separates the fit's errors from the network's; `facenormals reconstruct` runs the same steps
+on the network's predictions (docs/tutorials/compose.md builds that version).
 
     python examples/paper_pipeline.py [--model auto|ict|builtin|PATH] [--views -45 0 45] [--out out/paper_pipeline]
 """

@@ -40,7 +40,8 @@ def main() -> None:
     parser.add_argument("--holdout-count", type=int, default=2_000)
     parser.add_argument("--steps", type=int, default=TrainConfig.steps)
     parser.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
-    parser.add_argument("--workers", type=int, default=2, help="data generation and loading processes")
+    parser.add_argument("--workers", type=int, default=2, help="data generation processes (training loads with one worker: on 2 cores a second one only "
+                        "competes with the training threads)")
     parser.add_argument("--model", default="auto", help="morphable model rendered: ict, builtin, auto or a path")
     args = parser.parse_args()
     out = Path(args.out)

@@ -42,6 +42,9 @@ PUBLIC = {
                          "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "summarise"],
     "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "drop_hidden_landmarks",
                             "fit_head", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"],
+    # used by examples/ (paper_pipeline.py, demo_synthetic_fit.py) and the `demo` command
+    "facenormals.fitting.oracle": ["OracleViews", "render_oracle_views"],
+    "facenormals.demo": ["DemoReport", "run_demo"],
 }
 
 # The names the foundation issue makes binding: importable from the top level and their subpackage.
