@@ -14,6 +14,23 @@ def test_shapes_range_and_randomness():
     assert single.shape == (3, 32, 32)
 
 
+def test_blur_alone_smooths_and_keeps_the_mean():
+    torch.manual_seed(0)
+    images = torch.rand(4, 3, 32, 32)
+    out = PhotoAugmentation(blur_probability=1.0, blur_sigma=(1.0, 1.0), noise_probability=0.0)(images)
+    step = (out[..., 1:] - out[..., :-1]).abs().mean() / (images[..., 1:] - images[..., :-1]).abs().mean()
+    assert step < 0.5, "neighbouring pixels come closer"
+    assert abs(float(out.mean() - images.mean())) < 0.01
+
+
+def test_noise_alone_has_the_configured_spread():
+    torch.manual_seed(0)
+    images = torch.full((4, 3, 32, 32), 0.5)
+    out = PhotoAugmentation(blur_probability=0.0, noise_probability=1.0, noise_std=(0.02, 0.02))(images)
+    difference = out - images
+    assert abs(float(difference.std()) - 0.02) < 0.002 and abs(float(difference.mean())) < 0.002
+
+
 def test_probability_zero_is_identity():
     images = torch.rand(2, 3, 16, 16)
     aug = PhotoAugmentation(blur_probability=0.0, noise_probability=0.0)

@@ -1,7 +1,9 @@
+import importlib.util
+
 import numpy as np
 import pytest
 
-from facenormals.data import random_background
+from facenormals.data import backgrounds, random_background
 from facenormals.data.backgrounds import SKIMAGE_IMAGES, PhotoLibrary
 
 
@@ -31,9 +33,7 @@ def test_photo_folder(tmp_path):
 
 def test_skimage_is_optional():
     library = PhotoLibrary(use_skimage=True)  # scikit-image may be absent: then no photos, no error
-    try:
-        import skimage  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("skimage") is None:
         assert len(library) == 0
     else:
         assert len(library) >= 10
@@ -87,3 +87,58 @@ def test_hidden_files_and_macos_sidecars_are_not_photos(tmp_path):
     (tmp_path / "__MACOSX" / "beach.jpg").write_bytes(b"resource fork")
     library = PhotoLibrary([tmp_path], use_skimage=False)
     assert library.sources == [str(tmp_path / "beach.jpg")]
+
+
+def test_bright_clutter_saturates_instead_of_wrapping_around(monkeypatch):
+    """Random colours reach 315; cast to uint8 unclipped, 300 became 44 (hard colour bands)."""
+    monkeypatch.setattr(backgrounds, "_random_color", lambda rng: np.full(3, 300.0))
+    for seed in range(4):
+        image = backgrounds._clutter(np.random.default_rng(seed), 32, 32)
+        assert (image == 255).all(), seed
+
+
+def test_every_listed_skimage_image_exists():
+    """A name that scikit-image lacks would be skipped: a dead entry (once `motorcycle_left`)."""
+    skdata = pytest.importorskip("skimage.data")
+    assert [name for name in SKIMAGE_IMAGES if not hasattr(skdata, name)] == []
+
+
+def test_skimage_images_that_cannot_load_are_named(monkeypatch):
+    """Skipping an image changes which photo every later sample crops: say so. Other errors are bugs."""
+    skdata = pytest.importorskip("skimage.data")
+
+    def needs_pooch():
+        raise ModuleNotFoundError("requires the installation of an optional dependency, pooch")
+
+    monkeypatch.setattr(skdata, "coins", needs_pooch)
+    with pytest.warns(UserWarning, match=r"skimage.data.coins skipped \(ModuleNotFoundError: requires .*pooch"):
+        library = PhotoLibrary()
+    assert library.skipped == ["skimage.data.coins"] and "skimage.data.coins" not in library.sources
+
+    def broken():
+        raise RuntimeError("a bug, not a missing download")
+
+    monkeypatch.undo()
+    monkeypatch.setattr(skdata, "moon", broken)
+    with pytest.raises(RuntimeError, match="a bug"):
+        PhotoLibrary()
+
+
+def test_the_fingerprint_follows_the_photos(tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.full((64, 80, 3), 200, np.uint8))
+    first = PhotoLibrary([tmp_path], use_skimage=False).fingerprint()
+    assert first == PhotoLibrary([tmp_path], use_skimage=False).fingerprint() and first["count"] == 2
+    cv2.imwrite(str(tmp_path / "b.png"), np.full((64, 80, 3), 201, np.uint8))
+    assert PhotoLibrary([tmp_path], use_skimage=False).fingerprint() != first
+
+
+def test_bad_background_arguments():
+    rng = np.random.default_rng(0)
+    for size in [(8,), 8, (8.5, 8), (0, 8), (True, 8)]:
+        with pytest.raises(ValueError, match=r"size: expected \(H, W\), two integers >= 1"):
+            random_background(rng, size)
+    with pytest.raises(ValueError, match=r"photo_probability: expected a probability in \[0, 1\], got 1.5"):
+        random_background(rng, (8, 8), photo_probability=1.5)

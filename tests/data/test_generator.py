@@ -146,8 +146,38 @@ def test_visible_landmarks_lie_on_the_head_surface_or_its_outline(generator, sam
             near_head |= head[rows, v + dv, u + du]
     outline = b.landmark_visible & ~np.isin(label, HEAD_LABELS)
     assert near_head[outline].all()
+    # on the head surface, a visible landmark lies at most the slack behind it: max(3 mm, 2 pixels)
+    on_head = b.landmark_visible & ~outline
+    slack = np.maximum(3.0, 2.0 * depth.numpy() / b.intrinsics[:, None, 0])
+    assert (depth.numpy() <= b.depth[rows, v, u] + slack)[on_head].all()
     inside = (b.landmarks >= 0).all(-1) & (b.landmarks <= 127).all(-1)
     assert not b.landmark_visible[~inside].any()
+
+
+def test_hair_just_in_front_of_a_landmark_hides_it(generator):
+    """Hair lies millimetres above the skin, within the depth slack of the z-buffer test: the label
+    of the pixel must hide the landmark (seed 7 has such landmarks on both heads)."""
+    b = generator.generate(7, range(16))
+    u, v = np.rint(b.landmarks).astype(int).clip(0, 127).transpose(2, 0, 1)
+    rows = np.arange(len(b))[:, None]
+    vertices, R, t, K = _ground_truth(generator.model, b)
+    depth = project_points(generator.model.landmark_vertices(vertices), R, t, K)[1].numpy()
+    surface = b.depth[rows, v, u]
+    slack = np.maximum(3.0, 2.0 * depth / b.intrinsics[:, None, 0])
+    under_hair = (b.segmentation[rows, v, u] == LABELS["hair"]) & (surface <= depth) & (depth <= surface + slack)
+    assert under_hair.sum() >= 3
+    assert not b.landmark_visible[under_hair].any()
+
+
+def test_landmarks_outside_the_image_are_invisible(generator):
+    """Close-ups (the head up to 1.5 times the image) put landmarks outside, where the nearest edge
+    pixel may well show the head at their depth."""
+    with configured(generator, SynthConfig.head_only(fill=(1.3, 1.5), yaw=30.0)) as gen:
+        b = gen.generate(0, range(8))
+    outside = ((b.landmarks < -0.5) | (b.landmarks > 127.5)).any(-1)
+    assert outside.sum() >= 10
+    assert not b.landmark_visible[outside].any()
+    assert b.landmark_visible[~outside].any()
 
 
 def test_a_profile_shows_the_nose_tip_on_the_outline(generator):
@@ -251,12 +281,28 @@ def test_wider_identity_range(generator):
         ({"supersample": 2}, "supersample"),
         ({"num_lights": (1, 4)}, "num_lights"),
         ({"yaw": -5.0}, "yaw"),
-        ({"image_size": 8}, "image_size"),
+        ({"roll": 181.0}, r"roll: expected a range in \[0, 180\] degrees"),
+        ({"pitch": 90.0}, r"pitch: expected a range in \[0, 90\) degrees, got 90.0"),
+        ({"pitch": float("nan")}, "pitch"),
+        ({"image_size": 8}, "image_size: expected an integer >= 16, got 8"),
+        ({"image_size": 128.7}, "image_size: expected an integer, got float 128.7"),
+        ({"image_size": True}, "image_size: expected an integer, got bool"),
+        ({"supersample": 3.0}, "supersample: expected an integer, got float 3.0"),
+        ({"max_expressions": -1}, "max_expressions: expected an integer >= 0, got -1"),
+        ({"max_expressions": 2.5}, "max_expressions: expected an integer"),
+        ({"principal_jitter": -1.0}, r"principal_jitter: expected pixels in \[0, 63.5\)"),
+        ({"principal_jitter": 64.0}, r"principal_jitter: expected pixels in \[0, 63.5\) \(the principal point inside"),
     ],
 )
 def test_bad_config(kwargs, match):
     with pytest.raises(ValueError, match=match):
         SynthConfig(**kwargs)
+
+
+def test_numpy_integers_are_accepted_as_python_ints():
+    config = SynthConfig(image_size=np.int64(64), supersample=np.int32(1), max_expressions=np.uint8(2))
+    assert config == SynthConfig(image_size=64, supersample=1, max_expressions=2)
+    assert all(type(config.to_dict()[name]) is int for name in ("image_size", "supersample", "max_expressions"))
 
 
 def test_bad_generate_arguments(generator):
@@ -282,3 +328,98 @@ def test_no_expressions_when_none_are_allowed(generator):
     with configured(generator, SynthConfig(expression_probability=1.0, max_expressions=0)) as gen:
         batch = gen.generate(5, range(4))
     assert (batch.expression_coeffs == 0).all()
+
+
+def test_the_callers_model_is_left_as_it_is():
+    """The generator renders in float32 on the CPU; converting the caller's module in place would
+    change the dtype (or device) of a model the caller goes on using."""
+    from facenormals.data import SyntheticHeadGenerator
+    from facenormals.models import builtin_head_model
+
+    config = SynthConfig.head_only(use_skimage=False)
+    model = builtin_head_model().double()
+    generator = SyntheticHeadGenerator(model, config)
+    assert model.mean.dtype == torch.float64 and model.shape_basis.dtype == torch.float64
+    assert generator.model is not model and generator.model.mean.dtype == torch.float32
+    assert torch.equal(generator.model.mean, model.mean.float())
+    single = builtin_head_model()
+    assert SyntheticHeadGenerator(single, config).model is single  # nothing to convert: no copy
+
+
+def _framed_box(generator, seed, count):
+    """``(count, 2, 2)``: lowest and highest projected pixel ``(u, v)`` of the framing vertices of the
+    mean head framed by ``_frame`` at random poses, from the stored float32 camera."""
+    rng = np.random.default_rng(seed)
+    cfg = generator.config
+    angles = np.radians(np.stack([rng.uniform(-a, a, count) for a in (cfg.roll, cfg.pitch, cfg.yaw)], 1))
+    rotation = euler_to_rotation_matrix(torch.from_numpy(angles.astype(np.float32)))
+    mean = generator.model.mean
+    head = mean[torch.from_numpy(generator.assets.framing)]
+    boxes = []
+    for k in range(count):
+        intrinsics, translation = generator._frame(np.random.default_rng([seed, k]), mean.numpy(),
+                                                   rotation[k].double().numpy())
+        pixels, _ = project_points(head[None], rotation[k:k + 1], torch.from_numpy(translation)[None],
+                                   torch.from_numpy(intrinsics)[None])
+        boxes.append(torch.stack([pixels[0].amin(0), pixels[0].amax(0)]).numpy())
+    return np.stack(boxes)
+
+
+@pytest.mark.parametrize("fill", [0.9, 1.0])
+def test_framing_hits_the_fill_and_keeps_the_head_inside(generator, fill):
+    """Up close (120 px focal length at 128 px) the extent of the head shrinks faster than 1/distance:
+    the former fixed six updates of the distance oscillated, missed the fill by pixels and left some
+    heads partly outside the image."""
+    with configured(generator, SynthConfig.head_only(fill=(fill, fill), focal=(120.0, 120.0))) as gen:
+        boxes = _framed_box(gen, 1, 40)
+    side = (boxes[:, 1] - boxes[:, 0]).max(-1)
+    np.testing.assert_allclose(side, fill * 128, atol=0.01)
+    assert boxes.min() >= -0.5 and boxes.max() <= 127.5
+
+
+def test_a_framing_that_did_not_converge_is_still_inside(generator, monkeypatch):
+    """Whatever the solve leaves, the head is moved back until it lies inside the image."""
+    from facenormals.data import generator as module
+
+    monkeypatch.setattr(module, "_FRAME_ITERATIONS", 0)  # only the first guess, which ignores perspective
+    with configured(generator, SynthConfig.head_only(fill=(0.9, 1.0), focal=(120.0, 200.0))) as gen:
+        boxes = _framed_box(gen, 2, 40)
+    assert boxes.min() >= -0.5 and boxes.max() <= 127.5
+
+
+def test_the_head_of_seed_0_index_208_is_inside(generator):
+    """On ICT-FaceKit six fixed distance updates left this head reaching u = 128.13 (the image ends at 127.5)."""
+    record = generator._plan(0, 208).record  # the camera, without rendering
+    _, vertices = generator.assets.vertices(record["shape_coeffs"], record["expression_coeffs"])
+    head = torch.from_numpy(vertices[generator.assets.framing])[None]
+    pixels, _ = project_points(head, *(torch.from_numpy(record[k])[None] for k in ("rotation", "translation", "intrinsics")))
+    assert float(pixels.amin()) >= -0.5 and float(pixels.amax()) <= 127.5
+
+
+def test_visibility_rules():
+    """Each clause of the landmark visibility on a hand-made z-buffer (focal length 500 px, landmarks
+    400 mm away: the depth slack is max(3 mm, 2 px = 1.6 mm) = 3 mm)."""
+    from facenormals.data import SyntheticHeadGenerator
+
+    generator = SyntheticHeadGenerator("builtin", SynthConfig.head_only(use_skimage=False))
+    skin, hair = LABELS["skin"], LABELS["hair"]
+    cases = [  # (u, v), label and depth of the surface at the nearest pixel, expected visibility
+        ((10.2, 10.0), skin, 399.0, True),  # on the head surface
+        ((20.0, 20.4), skin, 398.0, True),  # 2 mm in front: within the slack (surface slope)
+        ((30.0, 30.0), skin, 396.0, False),  # 4 mm in front: hidden by the head
+        ((40.0, 40.0), hair, 399.9, False),  # hair in front, however thin, hides it
+        ((50.0, 50.0), hair, 401.0, True),  # hair behind it (a landmark on the outline)
+        ((60.0, 60.0), 0, np.inf, True),  # nothing at the pixel: on the outline
+        ((127.4, 70.0), skin, 400.0, True),  # the last pixel column
+        ((127.6, 80.0), skin, 400.0, False),  # outside the image, though the edge pixel shows the head
+        ((90.0, -0.6), skin, 400.0, False),
+    ]
+    pixels = np.array([[c[0] for c in cases]], np.float32)
+    zbuffer = np.full((1, 128, 128), np.inf, np.float32)
+    labels = np.zeros((1, 128, 128), np.uint8)
+    for (u, v), label, depth, _ in cases:
+        row, column = min(max(round(v), 0), 127), min(max(round(u), 0), 127)
+        zbuffer[0, row, column], labels[0, row, column] = depth, label
+    visible = generator._visibility(pixels, np.full((1, len(cases)), 400.0, np.float32),
+                                    np.array([[500.0, 63.5, 63.5]], np.float32), zbuffer, labels)
+    assert visible[0].tolist() == [c[3] for c in cases]

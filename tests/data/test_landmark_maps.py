@@ -54,6 +54,9 @@ def test_bad_inputs():
         landmark_maps(torch.zeros(1, 3, 2), None, (8, 8), sigma=0.0)
     with pytest.raises(ValueError, match=r"maps: expected shape \(B, L, H, W\)"):
         landmarks_from_maps(torch.zeros(3, 8, 8))
+    for size in [(8,), 8, (8.0, 8), (0, 8)]:
+        with pytest.raises(ValueError, match=r"image_size: expected \(H, W\), two integers >= 1"):
+            landmark_maps(torch.zeros(1, 3, 2), None, size)
 
 
 def test_decoding_with_one_threshold_per_channel():

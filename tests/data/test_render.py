@@ -25,6 +25,17 @@ def _sphere_scene(center, radius=50.0, f=60.0):
     return TileScene([part], np.array([f, 15.5, 15.5]), light)
 
 
+def _hit_by_pixel_rays(center, radius, f=60.0):
+    """``(32, 32)`` bool: the pixels whose centre ray hits the sphere of a :func:`_sphere_scene`, and
+    the first hit points ``(32, 32, 3)``."""
+    v, u = np.mgrid[0:32, 0:32].astype(float)
+    rays = np.stack([(u - 15.5) / f, (v - 15.5) / f, np.ones_like(u)], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    b = rays @ center
+    discriminant = b * b - (center @ center - radius**2)
+    return discriminant >= 0, rays * (b - np.sqrt(np.maximum(discriminant, 0.0)))[..., None]
+
+
 def test_sphere_normals_depth_and_labels(renderer):
     out = renderer.render([_sphere_scene([0.0, 0.0, 300.0])], [3])
     assert out.normals.shape == (1, 32, 32, 3) and out.labels.dtype == np.uint8
@@ -32,24 +43,26 @@ def test_sphere_normals_depth_and_labels(renderer):
     assert mask[15, 15] and not mask[0, 0] and out.coverage[0, 0, 0] == 0 and out.coverage[0, 15, 15] == 255
     v, u = np.nonzero(mask)
     # the analytic sphere: a ray through pixel (u, v) hits it where the normal is (X - C) / r
-    rays = np.stack([(u - 15.5) / 60.0, (v - 15.5) / 60.0, np.ones_like(u, float)], 1)
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     c = np.array([0.0, 0.0, 300.0])
-    b = rays @ c
-    t = b - np.sqrt(b * b - (c @ c - 50.0**2))
-    hit = rays * t[:, None]
-    expected = (hit - c) / 50.0
+    hit, points = _hit_by_pixel_rays(c, 50.0)
+    assert hit[mask].all()
+    expected = (points[v, u] - c) / 50.0
     cosine = np.sum(out.normals[0][v, u] * expected, axis=1)
     assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).mean() < 1.0  # a 24x32 polygon, not a sphere
-    assert np.abs(out.depth[0][v, u] - hit[:, 2]).max() < 1.5
+    assert np.abs(out.depth[0][v, u] - points[v, u, 2]).max() < 1.5
     assert np.isinf(out.depth[0][~mask]).all() and (out.normals[0][~mask] == 0).all()
 
 
 def test_off_centre_object_lands_on_the_right_pixels(renderer):
-    # x right, y down: a sphere at +x, +y appears right of and below the centre
-    out = renderer.render([_sphere_scene([60.0, 40.0, 300.0], radius=10.0)])
-    v, u = np.nonzero(out.labels[0])
-    assert abs(u.mean() - (15.5 + 60 * 60 / 300)) < 0.6 and abs(v.mean() - (15.5 + 60 * 40 / 300)) < 0.6
+    """x right, y down: a sphere at +x, +y covers exactly the pixels right of and below the centre
+    whose centre rays hit it (no pixel centre lies within 0.14 px of its outline; a half-pixel offset
+    changes 11 of its 52 pixels)."""
+    center = np.array([50.0, 35.0, 300.0])
+    out = renderer.render([_sphere_scene(center, radius=20.0)])
+    hit, _ = _hit_by_pixel_rays(center, 20.0)
+    np.testing.assert_array_equal(out.labels[0] > 0, hit)
+    v, u = np.nonzero(hit)
+    assert u.mean() > 20 and v.mean() > 20  # right of and below the centre 15.5
 
 
 def test_bad_tiles(renderer):
@@ -62,3 +75,70 @@ def test_bad_tiles(renderer):
         renderer.render([scene, scene], [0])
     with pytest.raises(ValueError, match="supersample"):
         TileRenderer((32, 32), supersample=2)
+
+
+def _part(**changes):
+    unit, faces, _ = sphere_mesh(np.linspace(0, np.pi, 6), 8)
+    values = dict(vertices=unit.astype(np.float32), normals=unit.astype(np.float32),
+                  colors=np.full((len(unit), 3), 0.5, np.float32), faces=faces, label=1)
+    values.update(changes)
+    return MeshPart(**values)
+
+
+def test_bad_scenes_are_named_before_drawing(renderer):
+    """Out-of-range faces would make the GPU read outside the vertex buffer; a fourth light would be
+    dropped by the shader's arrays of three."""
+    light = Lighting(np.full(3, 0.5), np.array([[0.0, 0.0, -1.0]]), np.ones((1, 3)))
+    n = len(_part().vertices)
+    bad = [
+        (dict(faces=np.array([[0, 1, n]])), rf"scenes\[0\]\.parts\[0\]\.faces: expected vertex indices in \[0, {n}\)"),
+        (dict(faces=np.array([[0, -1, 2]])), r"parts\[0\]\.faces: expected vertex indices"),
+        (dict(faces=np.array([[0.0, 1.0, 2.0]])), r"parts\[0\]\.faces: expected integers"),
+        (dict(faces=np.array([0, 1, 2])), r"parts\[0\]\.faces: expected shape \(N, 3\), got \(3,\)"),
+        (dict(normals=np.zeros((n - 1, 3), np.float32)), rf"parts\[0\]\.normals: expected shape \({n}, 3\)"),
+        (dict(colors=np.zeros((n, 4), np.float32)), r"parts\[0\]\.colors: expected shape"),
+        (dict(occlusion=np.ones(n + 1, np.float32)), r"parts\[0\]\.occlusion: expected shape"),
+        (dict(vertices=np.zeros((n, 2), np.float32)), r"parts\[0\]\.vertices: expected shape \(N, 3\)"),
+        (dict(rotation=np.eye(4)), r"parts\[0\]\.rotation: expected shape \(3, 3\)"),
+        (dict(label=0), r"parts\[0\]\.label: expected 1..255, got 0"),
+    ]
+    for changes, match in bad:
+        with pytest.raises(ValueError, match=match):
+            renderer.render([TileScene([_part(**changes)], np.array([60.0, 15.5, 15.5]), light)])
+    four = Lighting(np.full(3, 0.5), np.tile([[0.0, 0.0, -1.0]], (4, 1)), np.ones((4, 3)))
+    with pytest.raises(ValueError, match=r"scenes\[0\]\.lighting: expected at most 3 lights, got 4"):
+        renderer.render([TileScene([_part()], np.array([60.0, 15.5, 15.5]), four)])
+    with pytest.raises(ValueError, match=r"scenes\[0\]\.intrinsics: expected shape \(3,\)"):
+        renderer.render([TileScene([_part()], np.array([60.0, 15.5]), light)])
+
+
+def test_a_closed_renderer_says_so():
+    try:
+        renderer = TileRenderer((16, 16), grid=1)
+    except HeadlessGLError as error:
+        pytest.skip(f"no headless OpenGL: {error}")
+    renderer.close()
+    renderer.close()  # twice is harmless
+    with pytest.raises(RuntimeError, match=r"render\(\) after close\(\)"):
+        renderer.render([_sphere_scene([0.0, 0.0, 300.0])])
+
+
+def test_a_failed_setup_releases_the_context(monkeypatch):
+    """The context is created before the shaders and framebuffers; an error there must delete it."""
+
+    class Context:
+        deleted = False
+
+        def delete(self):
+            self.deleted = True
+
+    context = Context()
+    monkeypatch.setattr("facenormals.data.gl_platform.create_gl_context", lambda: context)
+
+    def fail(self):
+        raise ValueError("image_size x supersample = 99999 exceeds the renderer's limit")
+
+    monkeypatch.setattr(TileRenderer, "_setup", fail)
+    with pytest.raises(ValueError, match="exceeds the renderer's limit"):
+        TileRenderer((32, 32))
+    assert context.deleted

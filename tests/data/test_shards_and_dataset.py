@@ -323,3 +323,22 @@ def test_a_count_can_grow_but_not_shrink(dataset_root, tmp_path):
     with pytest.raises(ValueError, match=r"holds a dataset of 10 samples; --count 6 would shrink it"):
         _write(root, count=6)
     assert {name: (root / name).read_bytes() for name in os.listdir(root)} == before
+
+
+def test_resuming_with_other_background_photos_is_refused(tmp_path):
+    """Which photo a sample crops depends on the whole photo set: the manifest records its content."""
+    import cv2
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    cv2.imwrite(str(photos / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    config = SynthConfig.head_only(background_folders=(str(photos),), use_skimage=False)
+    _write(tmp_path / "out", count=1, shard_size=1, config=config)
+    assert read_manifest(tmp_path / "out")["photos"]["count"] == 1
+    cv2.imwrite(str(photos / "b.png"), np.zeros((64, 64, 3), np.uint8))
+    with pytest.raises(ValueError, match="holds a dataset with another photos"):
+        _write(tmp_path / "out", count=1, shard_size=1, config=config)
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    del manifest["photos"]  # as written before the photos were recorded: nothing to compare
+    (tmp_path / "out" / "manifest.json").write_text(json.dumps(manifest))
+    assert _write(tmp_path / "out", count=1, shard_size=1, config=config).shards_skipped == 1

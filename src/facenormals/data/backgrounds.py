@@ -7,18 +7,23 @@ that no second face appears behind the rendered head.
 
 from __future__ import annotations
 
+import hashlib
+import warnings
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from facenormals.core.check import check_image_size
+
 __all__ = ["PhotoLibrary", "random_background"]
 
-#: Bundled ``skimage.data`` images used as photo backgrounds (no faces; skipped when missing).
+#: Bundled ``skimage.data`` images used as photo backgrounds (no faces; skipped, with a warning,
+#: where this scikit-image lacks one or would have to download it).
 SKIMAGE_IMAGES = (
     "chelsea", "coffee", "rocket", "horse", "coins", "moon", "text", "page", "brick", "grass",
-    "gravel", "hubble_deep_field", "immunohistochemistry", "retina", "colorwheel", "logo", "motorcycle_left",
-    "clock", "cell", "binary_blobs",
+    "gravel", "hubble_deep_field", "immunohistochemistry", "retina", "colorwheel", "logo", "clock", "cell",
+    "binary_blobs",
 )  # fmt: skip
 #: Arguments that make a generated ``skimage.data`` image the same in every process (``binary_blobs``
 #: draws new blobs on each call otherwise, so samples drawing it differed between runs).
@@ -59,6 +64,14 @@ class PhotoLibrary:
     Args:
         folders: folders searched (recursively) for ``.jpg``, ``.jpeg`` and ``.png`` files.
         use_skimage: add the bundled ``skimage.data`` images when scikit-image is installed.
+
+    Attributes:
+        images: the ``(H, W, 3)`` uint8 RGB photos.
+        sources: where each photo comes from (``skimage.data.<name>`` or its path).
+        skipped: the ``skimage.data`` images this installation cannot load (each also warned about).
+
+    Raises:
+        ValueError: on a missing folder, a folder without photos, or a photo that cannot be decoded.
     """
 
     def __init__(self, folders: Sequence[str | Path] = (), use_skimage: bool = True) -> None:
@@ -66,6 +79,7 @@ class PhotoLibrary:
 
         self.images: list[np.ndarray] = []
         self.sources: list[str] = []
+        self.skipped: list[str] = []
         if use_skimage:
             try:
                 import skimage.data as skdata
@@ -73,12 +87,13 @@ class PhotoLibrary:
                 skdata = None
             if skdata is not None:
                 for name in SKIMAGE_IMAGES:
-                    loader = getattr(skdata, name, None)
-                    if loader is None:
-                        continue
                     try:
-                        image = _to_rgb_uint8(loader(**_SKIMAGE_ARGUMENTS.get(name, {})))
-                    except Exception:  # images that need a download (pooch) or fail to load are skipped
+                        image = _to_rgb_uint8(getattr(skdata, name)(**_SKIMAGE_ARGUMENTS.get(name, {})))
+                    # not in this scikit-image version, or it needs pooch or a download; other errors are bugs
+                    except (AttributeError, ImportError, OSError) as error:
+                        self.skipped.append(f"skimage.data.{name}")
+                        warnings.warn(f"background photos: skimage.data.{name} skipped ({type(error).__name__}: "
+                                      f"{error})", stacklevel=2)
                         continue
                     if image is not None:
                         self.images.append(image)
@@ -108,6 +123,15 @@ class PhotoLibrary:
 
     def __repr__(self) -> str:
         return f"PhotoLibrary(images={len(self)})"
+
+    def fingerprint(self) -> dict:
+        """``{"count", "sha256"}`` of the photos in order (their shapes and pixels): which photo a
+        sample crops depends on both, so a dataset resumed with other photos would mix two sets."""
+        digest = hashlib.sha256()
+        for image in self.images:
+            digest.update(repr(image.shape).encode())
+            digest.update(image.tobytes())
+        return {"count": len(self.images), "sha256": digest.hexdigest()}
 
     def crop(self, rng: np.random.Generator, size: tuple[int, int]) -> np.ndarray:
         """A random crop (20–100% of the shorter side), flipped at random, resized to ``size``."""
@@ -164,7 +188,7 @@ def _fractal_noise(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 def _clutter(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     import cv2
 
-    image = np.ascontiguousarray(_gradient(rng, h, w).astype(np.uint8))
+    image = np.ascontiguousarray(np.clip(_gradient(rng, h, w), 0, 255).astype(np.uint8))  # colours reach 315
     for _ in range(int(rng.integers(3, 25))):
         color = tuple(int(c) for c in np.clip(_random_color(rng), 0, 255))
         kind = rng.integers(4)
@@ -203,18 +227,23 @@ def _pattern(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 def random_background(rng: np.random.Generator, size: tuple[int, int] = (128, 128),
                       photos: PhotoLibrary | None = None, photo_probability: float = 0.4) -> np.ndarray:
-    """A random ``(H, W, 3)`` uint8 RGB background.
+    """A random ``(H, W, 3)`` uint8 RGB background of ``size`` ``(H, W)``.
 
     One of: linear or radial colour gradient, fractal (multi-octave) noise, clutter of random
     shapes, warped stripes/checkers, or a photo crop (with probability ``photo_probability`` when
     ``photos`` holds images). Half of them get a random brightness/contrast change and some sensor
     noise.
 
+    Raises:
+        ValueError: unless ``size`` is two integers >= 1 and ``photo_probability`` lies in ``[0, 1]``.
+
     Example:
         >>> random_background(np.random.default_rng(0)).shape
         (128, 128, 3)
     """
-    h, w = int(size[0]), int(size[1])
+    h, w = check_image_size(size, "size")
+    if not 0.0 <= photo_probability <= 1.0:
+        raise ValueError(f"photo_probability: expected a probability in [0, 1], got {photo_probability}")
     if photos is not None and len(photos) and rng.random() < photo_probability:
         image = photos.crop(rng, (h, w)).astype(np.float64)
     else:

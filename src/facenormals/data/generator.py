@@ -11,6 +11,7 @@ See ``docs/synthetic_data.md`` for the distributions and the design decisions.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ from typing import Iterable, Sequence
 import numpy as np
 import torch
 
+from facenormals.core.check import check_integer
 from facenormals.data.appearance import sample_hair_color, sample_iris_color, sample_lighting, skin_albedo, srgb_to_linear
 from facenormals.data.backgrounds import PhotoLibrary, random_background
 from facenormals.data.head import HeadAssets
@@ -37,6 +39,10 @@ from facenormals.models.morphable import MorphableModel
 __all__ = ["SynthBatch", "SynthConfig", "SyntheticHeadGenerator"]
 
 _STREAMS = ("shape", "pose", "camera", "skin", "hair", "light", "background", "extras")
+#: Most iterations of the framing solve (it converges in 3 or 4), and the margin in pixels by which
+#: the framed head stays inside the image edges (float32 rounding of the stored camera moves ~1e-5 px).
+_FRAME_ITERATIONS = 50
+_FRAME_MARGIN = 1e-3
 
 
 @dataclass(frozen=True)
@@ -44,17 +50,23 @@ class SynthConfig:
     r"""The distributions of the synthetic data (defaults: the issue's ranges).
 
     Attributes:
-        image_size: side of the square images in pixels.
+        image_size: side of the square images in pixels, an integer >= 16.
         identity_scale: identity coefficients are :math:`y_k \sim \mathcal N(0, (s\,\sigma_k)^2)`;
             values above 1 give a wider range of faces.
-        expression_probability: probability of a non-neutral expression.
-        max_expressions: at most this many blendshapes are active (before mirroring _L/_R pairs).
-        yaw, pitch, roll: uniform ranges ``±`` these angles, degrees.
+        expression_probability: probability of a non-neutral expression: 1 to ``max_expressions``
+            random blendshapes with weights ``uniform(0.15, 1) ** 0.8``, in ``[0.219, 1]``, often
+            mirrored to their _L/_R partner (times 0.8–1.2), sometimes with ``jawOpen`` (0.1–0.8).
+        max_expressions: at most this many blendshapes are active (before mirroring _L/_R pairs), an
+            integer >= 0 (0: always neutral).
+        yaw, pitch, roll: uniform ranges ``±`` these angles, degrees: yaw and roll at most 180, pitch
+            below 90 (where :func:`~facenormals.geometry.rotation_matrix_to_euler` inverts it).
         fill: range of the head's size (larger side of the projected bounding box of the head
-            without the neck) as a fraction of the image side.
+            without the neck) as a fraction of the image side. Up to 1 the head lies inside the
+            image; above 1 (at most 1.5) it is cropped.
         focal: range of the focal length in pixels for a 128-pixel image (log-uniform; scaled
             with ``image_size``).
-        principal_jitter: principal point offset from the image centre, uniform ``±`` pixels at 128.
+        principal_jitter: principal point offset from the image centre, uniform ``±`` pixels at 128
+            (the principal point stays inside the image: below ``64 (S - 1) / S``).
         num_lights: range of the number of directional lights.
         temperature: range of the colour temperatures in kelvin.
         hair_probability: probability of procedural hair.
@@ -64,7 +76,7 @@ class SynthConfig:
         photo_probability: probability of a photo background when photos are available.
         background_folders: folders of background photos (``.jpg``/``.png``).
         use_skimage: also crop ``skimage.data`` images when scikit-image is installed.
-        supersample: odd colour supersampling factor (anti-aliasing).
+        supersample: odd integer colour supersampling factor (anti-aliasing).
     """
 
     image_size: int = 128
@@ -96,8 +108,10 @@ class SynthConfig:
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name}: expected a probability in [0, 1], got {value}")
 
-        if int(self.image_size) < 16:
-            raise ValueError(f"image_size: expected >= 16, got {self.image_size}")
+        for name, minimum in (("image_size", 16), ("supersample", 1), ("max_expressions", 0)):
+            object.__setattr__(self, name, check_integer(getattr(self, name), name, minimum))  # numpy ints -> int
+        if self.supersample % 2 == 0:
+            raise ValueError(f"supersample: expected an odd factor >= 1, got {self.supersample}")
         if not (math.isfinite(self.identity_scale) and self.identity_scale >= 0):
             raise ValueError(f"identity_scale: expected a finite number >= 0, got {self.identity_scale}")
         for name in ("expression_probability", "hair_probability", "cap_probability", "occluder_probability",
@@ -111,13 +125,18 @@ class SynthConfig:
             raise ValueError(f"fill: expected 0 < low <= high <= 1.5, got {self.fill}")
         if not 0.0 < self.focal[0] <= self.focal[1]:
             raise ValueError(f"focal: expected 0 < low <= high, got {self.focal}")
+        # the principal point stays inside the image: the framing relies on it
+        limit = 64.0 * (self.image_size - 1) / self.image_size
+        if not 0.0 <= self.principal_jitter < limit:
+            raise ValueError(f"principal_jitter: expected pixels in [0, {limit:g}) (the principal point inside the "
+                             f"image), got {self.principal_jitter}")
         if not 0 <= self.num_lights[0] <= self.num_lights[1] <= 3:
             raise ValueError(f"num_lights: expected 0 <= low <= high <= 3, got {self.num_lights}")
-        if self.supersample < 1 or self.supersample % 2 == 0:
-            raise ValueError(f"supersample: expected an odd factor >= 1, got {self.supersample}")
-        for name in ("yaw", "pitch", "roll"):
+        for name in ("roll", "yaw"):
             if not 0.0 <= getattr(self, name) <= 180.0:
                 raise ValueError(f"{name}: expected a range in [0, 180] degrees, got {getattr(self, name)}")
+        if not 0.0 <= self.pitch < 90.0:  # rotation_matrix_to_euler recovers pitch only inside (-90, 90)
+            raise ValueError(f"pitch: expected a range in [0, 90) degrees, got {self.pitch}")
 
     @classmethod
     def head_only(cls, **changes) -> "SynthConfig":
@@ -206,7 +225,9 @@ class SyntheticHeadGenerator:
 
     Args:
         model: a :class:`~facenormals.models.MorphableModel` or a spec for
-            :func:`~facenormals.models.load_model` (``"auto"``, ``"ict"``, ``"builtin"``, a path).
+            :func:`~facenormals.models.load_model` (``"auto"``, ``"ict"``, ``"builtin"``, a path). The
+            generator works in float32 on the CPU: another model is copied and converted, the
+            caller's stays as it is.
         config: the :class:`SynthConfig`.
         grid: renderer tiles per side (``grid²`` samples per render call). A sample is always drawn
             in tile ``index mod grid²``; its bytes are reproducible for the same ``grid`` (the
@@ -226,7 +247,10 @@ class SyntheticHeadGenerator:
         from facenormals.models import load_model
 
         if isinstance(model, MorphableModel):
-            self.model = model.float().cpu()
+            tensors = [*model.parameters(), *model.buffers()]
+            if any(t.device.type != "cpu" or (t.is_floating_point() and t.dtype != torch.float32) for t in tensors):
+                model = copy.deepcopy(model).float().cpu()  # the caller's model stays as it is
+            self.model = model
         else:
             self.model = load_model(model)
         self.config = config if config is not None else SynthConfig()
@@ -326,11 +350,15 @@ class SyntheticHeadGenerator:
         return {name: np.random.Generator(np.random.PCG64(child)) for name, child in zip(_STREAMS, root.spawn(len(_STREAMS)))}
 
     def _expressions(self, rng: np.random.Generator) -> np.ndarray:
+        """Expression weights ``(E,)`` float32 in ``[0, 1]``: with ``expression_probability``, 1 to
+        ``max_expressions`` blendshapes with weights ``uniform(0.15, 1) ** 0.8`` (in ``[0.219, 1]``), each
+        copied to its _L/_R partner with probability 0.6 (times 0.8–1.2), plus ``jawOpen`` in
+        ``[0.1, 0.8]`` with probability 0.25; ``mouthClose <= jawOpen``."""
         count = self.model.num_expressions
         weights = np.zeros(count, dtype=np.float64)
         if count == 0 or self.config.max_expressions == 0 or rng.random() >= self.config.expression_probability:
             return weights.astype(np.float32)
-        k = int(rng.integers(1, max(1, self.config.max_expressions) + 1))
+        k = int(rng.integers(1, self.config.max_expressions + 1))
         chosen = rng.choice(count, size=min(k, count), replace=False)
         weights[chosen] = rng.uniform(0.15, 1.0, size=len(chosen)) ** 0.8
         for i in chosen:
@@ -343,7 +371,11 @@ class SyntheticHeadGenerator:
         return np.clip(weights, 0.0, 1.0).astype(np.float32)
 
     def _frame(self, rng: np.random.Generator, vertices: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Intrinsics and translation so that the head fills the sampled fraction of the image."""
+        """Intrinsics ``(f, u0, v0)`` ``(3,)`` and translation ``(3,)`` float32 for the head ``vertices``
+        ``(N, 3)`` posed by ``rotation`` ``(3, 3)``: the larger side of the projected bounding box of the
+        framing vertices is the sampled fraction ``fill`` of the image side, its centre a random pixel
+        that keeps it inside the image, and for ``fill <= 1`` the box lies inside the image
+        ``[-0.5, size - 0.5]`` (pixel edges) whatever the solve left."""
         cfg = self.config
         size = cfg.image_size
         scale = size / 128.0
@@ -356,20 +388,36 @@ class SyntheticHeadGenerator:
         head = vertices[self.assets.framing].astype(np.float64)  # every vertex: a subset let heads leave the frame
         middle = 0.5 * (head.min(0) + head.max(0))
         posed = (head - middle) @ rotation.T  # camera-frame offsets from the head's middle
-        extent = float(np.max(posed[:, :2].max(0) - posed[:, :2].min(0)))
-        z = f * extent / target
+        principal = np.array([u0, v0])
         half = min(target / 2.0, size / 2.0)
         want = np.array([rng.uniform(half - 0.5, size - 0.5 - half), rng.uniform(half - 0.5, size - 0.5 - half)])
-        xy = (want - [u0, v0]) * z / f
-        for _ in range(6):
-            points = posed + np.array([xy[0], xy[1], z])
-            points[:, 2] = np.maximum(points[:, 2], 1.0)
-            uv = f * points[:, :2] / points[:, 2:3] + [u0, v0]
-            lo, hi = uv.min(0), uv.max(0)
-            current = float(np.max(hi - lo))
-            z *= current / target
-            xy += (want - 0.5 * (lo + hi)) * z / f
-        translation = rotation.T @ np.array([xy[0], xy[1], z]) - middle
+        # Newton's method on (box centre - want, larger side - target) over the camera-frame position of
+        # the head's middle; the derivatives are those of the box's extreme points. (A fixed-point update
+        # z *= side / target oscillates up close, where the side shrinks faster than 1 / z.)
+        z = f * float(np.max(posed[:, :2].max(0) - posed[:, :2].min(0))) / target
+        position = np.append((want - principal) * z / f, z)
+        for _ in range(_FRAME_ITERATIONS):
+            points = posed + position
+            depth = np.maximum(points[:, 2], 1.0)
+            uv = f * points[:, :2] / depth[:, None] + principal
+            ends = np.stack([uv.argmin(0), uv.argmax(0)])  # (2, 2): the lowest and highest point along u and v
+            u, end_depth = uv[ends, [0, 1]], depth[ends]
+            side = u[1] - u[0]
+            a = int(np.argmax(side))
+            residual = np.append(0.5 * (u[0] + u[1]) - want, side[a] - target)
+            if np.abs(residual).max() < 1e-9:
+                break
+            du_dxy, du_dz = f / end_depth, (principal - u) / end_depth  # derivatives of each end along its axis
+            jacobian = np.zeros((3, 3))
+            jacobian[[0, 1], [0, 1]] = du_dxy.mean(0)
+            jacobian[:2, 2] = du_dz.mean(0)
+            jacobian[2, [a, 2]] = du_dxy[1, a] - du_dxy[0, a], du_dz[1, a] - du_dz[0, a]
+            position = position - np.linalg.solve(jacobian, residual)
+        if target <= size:  # moving the head away draws every point towards the principal point, inside the image
+            lateral = posed[:, :2] + position[:2]
+            edge = np.where(lateral > 0, size - 0.5 - _FRAME_MARGIN, -0.5 + _FRAME_MARGIN) - principal
+            position[2] = max(position[2], float(np.max(f * lateral / edge - posed[:, 2:3])))
+        translation = rotation.T @ position - middle
         return np.array([f, u0, v0], dtype=np.float32), translation.astype(np.float32)
 
     def _plan(self, seed: int, index: int, pose: np.ndarray | None = None) -> _Plan:

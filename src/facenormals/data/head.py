@@ -62,7 +62,6 @@ class HeadAssets:
         height: ``(N,)`` height above eye level in mm (up is positive).
         framing: ``(N,)`` bool, the vertices that count as the head when framing the camera (not the neck).
         smoothing: the one-ring averaging operator ``(N, N)``.
-        landmarks: ``(24, 3)`` landmark positions on the mean head.
         skull_center: ``(3,)`` centre of the skull in the mean head's model frame.
         skull_radius: ``(N,)`` distance of each mean vertex from the skull centre, smoothed over
             the mesh (20 one-ring averages), the base of hair shells.
@@ -79,7 +78,6 @@ class HeadAssets:
     height: np.ndarray
     framing: np.ndarray
     smoothing: scipy.sparse.csr_matrix
-    landmarks: np.ndarray
     skull_center: np.ndarray
     skull_radius: np.ndarray
     _noise: dict = field(default_factory=dict, repr=False)
@@ -103,7 +101,6 @@ class HeadAssets:
         v = mean.numpy()
         faces = faces_t.numpy().astype(np.int64)
         lm = {name: v[model.landmarks[name]] for name in LANDMARK_NAMES}
-        landmarks = np.stack([lm[n] for n in LANDMARK_NAMES])
         smoothing = neighbour_average(faces, len(v))
 
         # openings
@@ -198,7 +195,6 @@ class HeadAssets:
             height=height.astype(np.float32),
             framing=framing,
             smoothing=smoothing,
-            landmarks=landmarks,
             skull_center=skull_center,
             skull_radius=radius,
         )

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_image_size, check_shape
 
 __all__ = ["landmark_maps", "landmarks_from_maps"]
 
@@ -38,7 +38,7 @@ def landmark_maps(
     Args:
         points: landmark pixels ``(u, v)``.
         visible: which landmarks are drawn (``None``: all finite ones); non-finite points are never drawn.
-        image_size: ``(H, W)``.
+        image_size: ``(H, W)``, two integers >= 1.
         sigma: Gaussian standard deviation in pixels.
         radius: the maps are exactly 0 farther than ``radius · sigma`` from the landmark.
 
@@ -63,9 +63,7 @@ def landmark_maps(
         check_shape(visible, ["B", "L"], "visible", dims)
         if visible.dtype != torch.bool:
             raise ValueError(f"visible: expected a bool tensor, got dtype {visible.dtype}")
-    height, width = (int(s) for s in image_size)
-    if height < 1 or width < 1:
-        raise ValueError(f"image_size: expected positive (H, W), got {image_size}")
+    height, width = check_image_size(image_size)
     if not sigma > 0 or not radius > 0:
         raise ValueError(f"sigma, radius: expected positive values, got {sigma}, {radius}")
     finite = torch.isfinite(points).all(-1)

@@ -28,6 +28,7 @@ import numpy as np
 
 __all__ = ["Lighting", "MeshPart", "RenderedTiles", "TileRenderer", "TileScene"]
 
+#: Most directional lights in a scene (the size of the shader's light arrays).
 MAX_LIGHTS = 3
 #: Largest side of the supersampled framebuffer (24 bytes a sample: 400 MB at 4096²).
 MAX_FRAMEBUFFER = 4096
@@ -230,7 +231,11 @@ class TileRenderer:
         self.supersample = int(supersample)
         self.near, self.far = float(near), float(far)
         self._context = create_gl_context()
-        self._setup()
+        try:
+            self._setup()
+        except BaseException:
+            self.close()  # a failed setup must not leak the context
+            raise
 
     @property
     def capacity(self) -> int:
@@ -321,7 +326,15 @@ class TileRenderer:
 
         Returns:
             The :class:`RenderedTiles`, in the order of ``scenes``.
+
+        Raises:
+            ValueError: on bad tiles, a part whose arrays do not have the shapes of :class:`MeshPart`
+                or whose faces index outside its vertices, intrinsics that are not ``(3,)``, or
+                lighting with more than :data:`MAX_LIGHTS` lights.
+            RuntimeError: after :meth:`close`.
         """
+        if self._context is None:
+            raise RuntimeError("TileRenderer: render() after close(); create a new renderer")
         gl = self._gl
         if tiles is None:
             tiles = list(range(len(scenes)))
@@ -330,6 +343,8 @@ class TileRenderer:
             raise ValueError(f"tiles: expected {len(scenes)} tiles, got {len(tiles)}")
         if len(set(tiles)) != len(tiles) or any(not 0 <= t < self.capacity for t in tiles):
             raise ValueError(f"tiles: expected distinct tiles in [0, {self.capacity}), got {tiles}")
+        for k, scene in enumerate(scenes):
+            _check_scene(scene, f"scenes[{k}]")
         self._context.make_current()
         vertex_data, index_data, draws = self._pack(scenes)
         gl.glBindVertexArray(self._vao)
@@ -362,7 +377,7 @@ class TileRenderer:
             f, u0, v0 = (float(x) for x in scene.intrinsics)
             gl.glUniform4f(u["u_projection"], 2 * f / w, 2 * f / h, 2 * (u0 + 0.5) / w - 1, 2 * (v0 + 0.5) / h - 1)
             light = scene.lighting
-            count = min(len(light.directions), MAX_LIGHTS)
+            count = len(light.directions)
             gl.glUniform3f(u["u_ambient"], *(float(x) for x in light.ambient))
             gl.glUniform1i(u["u_num_lights"], count)
             if count:
@@ -462,3 +477,40 @@ class TileRenderer:
         if getattr(self, "_context", None) is not None:
             self._context.delete()
             self._context = None
+
+
+def _check_shape(array: object, shape: tuple[int | None, ...], name: str) -> None:
+    """Raise ``ValueError`` unless ``array`` has ``shape`` (``None``: any size, shown as N)."""
+    got = np.shape(array)
+    if len(got) != len(shape) or any(want is not None and want != size for want, size in zip(shape, got)):
+        expected = ", ".join("N" if want is None else str(want) for want in shape) + ("," if len(shape) == 1 else "")
+        raise ValueError(f"{name}: expected shape ({expected}), got {got}")
+
+
+def _check_scene(scene: TileScene, name: str) -> None:
+    """Raise ``ValueError`` naming the first array of ``scene`` that does not fit (the GPU would read
+    outside its buffers on an out-of-range face or a short array)."""
+    _check_shape(scene.intrinsics, (3,), f"{name}.intrinsics")
+    light = scene.lighting
+    _check_shape(light.ambient, (3,), f"{name}.lighting.ambient")
+    _check_shape(light.directions, (None, 3), f"{name}.lighting.directions")
+    _check_shape(light.colors, (len(light.directions), 3), f"{name}.lighting.colors")
+    if len(light.directions) > MAX_LIGHTS:
+        raise ValueError(f"{name}.lighting: expected at most {MAX_LIGHTS} lights, got {len(light.directions)}")
+    for k, part in enumerate(scene.parts):
+        where = f"{name}.parts[{k}]"
+        _check_shape(part.vertices, (None, 3), f"{where}.vertices")
+        n = len(part.vertices)
+        for what, shape in (("normals", (n, 3)), ("colors", (n, 3)), ("faces", (None, 3)), ("rotation", (3, 3)),
+                            ("translation", (3,))):
+            _check_shape(getattr(part, what), shape, f"{where}.{what}")
+        if part.occlusion is not None:
+            _check_shape(part.occlusion, (n,), f"{where}.occlusion")
+        faces = np.asarray(part.faces)
+        if faces.dtype.kind not in "iu":
+            raise ValueError(f"{where}.faces: expected integers, got dtype {faces.dtype}")
+        if faces.size and (int(faces.min()) < 0 or int(faces.max()) >= n):
+            raise ValueError(f"{where}.faces: expected vertex indices in [0, {n}), got values in "
+                             f"[{int(faces.min())}, {int(faces.max())}]")
+        if not 1 <= int(part.label) <= 255:
+            raise ValueError(f"{where}.label: expected 1..255, got {part.label}")

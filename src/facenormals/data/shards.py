@@ -2,7 +2,7 @@
 
 Layout of a dataset folder::
 
-    manifest.json          format, seed, count, shard size, model, generator config
+    manifest.json          format, seed, count, shard size, model, generator config, background photos
     shard_00000.npz        samples 0 .. 999
     shard_00001.npz        samples 1000 .. 1999
     ...
@@ -40,6 +40,7 @@ import numpy as np
 
 from facenormals.core.check import environment_integer
 from facenormals.core.files import PART, atomic_write
+from facenormals.data.backgrounds import PhotoLibrary
 from facenormals.data.generator import SynthBatch, SynthConfig
 
 __all__ = ["SynthSummary", "read_manifest", "write_dataset"]
@@ -271,7 +272,8 @@ def write_dataset(
 
     Raises:
         ValueError: on bad arguments, or if ``out_dir`` holds a dataset with another seed, shard
-            size, model or configuration.
+            size, model, configuration or set of background photos (the photos of
+            ``config.background_folders`` and ``skimage.data``, compared by content).
         HeadlessGLError: if no headless OpenGL platform is available.
     """
     from facenormals.models import load_model
@@ -298,6 +300,7 @@ def write_dataset(
     if root.exists() and not root.is_dir():
         raise ValueError(f"out_dir: {root} exists and is not a folder")
     model = load_model(model_spec)  # before the folder exists: a bad model path leaves nothing behind
+    photos = PhotoLibrary(config.background_folders, config.use_skimage).fingerprint()  # and an undecodable photo
     root.mkdir(parents=True, exist_ok=True)
     manifest = {
         "format": FORMAT_NAME,
@@ -310,6 +313,7 @@ def write_dataset(
         "model_spec": str(model_spec),
         "model": _model_fingerprint(model),
         "config": config.to_dict(),
+        "photos": photos,
         "labels": _labels(),
     }
     path = root / MANIFEST
@@ -320,12 +324,14 @@ def write_dataset(
         existing = read_manifest(root)
         if "content_sha256" not in existing.get("model", {}):  # written before the model's content was recorded
             manifest["model"] = {k: v for k, v in manifest["model"].items() if k != "content_sha256"}
+        if "photos" not in existing:  # written before the photos were recorded
+            del manifest["photos"]
         if int(existing.get("count", count)) > count:  # would rewrite the last shard and orphan later ones
             raise ValueError(f"{root}: holds a dataset of {existing['count']} samples; --count {count} would shrink "
                              "it (a count can only grow); use another folder, or the SyntheticHeadDataset "
                              "of this one with a Subset")
-        for key in ("seed", "shard_size", "image_size", "model", "config"):
-            if existing.get(key) != manifest[key]:
+        for key in ("seed", "shard_size", "image_size", "model", "config", "photos"):
+            if existing.get(key) != manifest.get(key):
                 raise ValueError(
                     f"{root}: holds a dataset with another {key} ({existing.get(key)!r} != {manifest[key]!r}); "
                     "use another folder or the same settings to resume"
