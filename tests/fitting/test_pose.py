@@ -141,6 +141,27 @@ def test_robust_pose_leaves_the_basin_two_swapped_eye_corners_make(ict_npz):
     torch.testing.assert_close(both.angles[1], alone.angles[0], rtol=0, atol=1e-12)
 
 
+def test_the_ransac_candidate_is_solved_even_with_missing_landmarks(monkeypatch):
+    """A view with a missing (NaN) landmark still refines the RANSAC candidate: the first reweighted
+    solve carries both candidates (the change of its weights was NaN at the masked landmark once,
+    so it never ran and the raw RANSAC pose competed unrefined)."""
+    import facenormals.fitting.pose as pose
+
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    uv, _, _, K = observe(model, 20.0, noise=0.3)
+    for missing in (False, True):
+        landmarks = uv.clone()
+        if missing:
+            landmarks[0, 5] = float("nan")
+        rows = []
+        original = pose.levenberg_marquardt
+        monkeypatch.setattr(pose, "levenberg_marquardt", lambda *a, **k: rows.append(a[1].shape[0]) or original(*a, **k))
+        prealign_pose(landmarks, points, K, robust_scale=3.0)
+        monkeypatch.setattr(pose, "levenberg_marquardt", original)
+        assert rows[:2] == [1, 2], (missing, rows)  # the plain solve, then both candidates reweighted
+
+
 def test_reweighting_stops_when_the_weights_settle_per_view(monkeypatch):
     """IRLS stops once no weight moves by more than IRLS_WEIGHT_TOLERANCE; per view, so that a batch
     gives each view exactly its result alone (a clean view stops while an outlier view goes on)."""

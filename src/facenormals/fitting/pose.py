@@ -118,8 +118,10 @@ def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tenso
 def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor,
                 ransac_px: float | None = None) -> tuple[Tensor, Tensor]:
     """OpenCV SQPnP poses ``(B, 6)`` as LM starts, and ``(B,)`` where OpenCV gave one (a failed view
-    gets zeros there). With ``ransac_px``, SQPnP inside OpenCV's RANSAC with that reprojection
-    threshold in pixels (deterministic: OpenCV seeds its generator per call)."""
+    gets zeros there). With ``ransac_px``, OpenCV's RANSAC (EPnP on minimal sets, deterministic: it
+    seeds its generator per call) with that reprojection threshold in pixels, and SQPnP on its
+    inliers; with 4 or 5 landmarks there is no minimal set to leave an outlier out, and it is SQPnP
+    on all of them."""
     import cv2
     import numpy as np
 
@@ -169,13 +171,15 @@ def _robust_solve(x: Tensor, status: Tensor, points: Tensor, targets: Tensor, ma
     x, status = torch.cat([x, ransac[has_ransac]]), torch.cat([status, status[has_ransac]])
     P, b, m, K = points[owner], targets[owner], mask[owner], intrinsics[owner]
     # the weights each candidate was last solved with: 1 for the plain solution; none yet for RANSAC's
+    # (2, outside any weight's range, so that it always gets a solve; its status is then its own)
     previous = torch.ones_like(b[..., 0])
-    previous[batch:] = math.inf
+    previous[batch:] = 2.0
     active = torch.ones(owner.shape[0], dtype=torch.bool, device=x.device)
     for _ in range(rounds):
         weights = cauchy_weights(_pose_residuals(x, P, b, m, K).norm(dim=-1), scale)
         # per candidate, so that a batch gives each view its result alone
-        active &= ((weights - previous).abs() * m).amax(-1) > IRLS_WEIGHT_TOLERANCE
+        change = torch.where(m, (weights - previous).abs(), torch.zeros_like(weights)).amax(-1)
+        active &= change > IRLS_WEIGHT_TOLERANCE
         if not bool(active.any()):
             break  # converged: the weights each last solve used are those of its solution
         i = active.nonzero().squeeze(1)
@@ -225,8 +229,8 @@ def prealign_pose(
         robust_scale: if given, up to ``robust_rounds`` more solves, each with Cauchy weights
             :math:`1 / (1 + (e_j / \delta)^2)` of the landmark errors :math:`e_j` (pixels) at its
             start (IRLS), so that a few spurious landmarks do not tilt the pose. They run from two
-            starts per view, the plain solution and OpenCV's RANSAC-SQPnP pose (inliers within
-            :math:`2\delta`), and the one of lower Cauchy cost :math:`\sum_j \log(1 + (e_j/\delta)^2)`
+            starts per view, the plain solution and OpenCV's RANSAC pose (SQPnP on the inliers
+            within :math:`2\delta`; from 6 landmarks up), and the one of lower Cauchy cost :math:`\sum_j \log(1 + (e_j/\delta)^2)`
             wins: grossly wrong landmarks (a network's eye corner placed on the other eye) can pull
             the plain solve into a wrong basin that reweighting alone does not leave. ``cost`` and
             ``rms_px`` stay those of the plain errors. (Reweighting the SQPnP start directly,
