@@ -342,3 +342,18 @@ def test_resuming_with_other_background_photos_is_refused(tmp_path):
     del manifest["photos"]  # as written before the photos were recorded: nothing to compare
     (tmp_path / "out" / "manifest.json").write_text(json.dumps(manifest))
     assert _write(tmp_path / "out", count=1, shard_size=1, config=config).shards_skipped == 1
+
+
+def test_resuming_a_dataset_of_another_generator_version_is_refused(tmp_path):
+    """The same (seed, index) draws other bytes after a generator change: a resume would mix them."""
+    from facenormals.data.generator import GENERATOR_VERSION
+
+    config = SynthConfig.head_only(use_skimage=False)
+    _write(tmp_path / "out", count=1, shard_size=1, config=config)
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert manifest["generator"] == GENERATOR_VERSION
+    del manifest["generator"]  # as written before the version was recorded: version 1
+    (tmp_path / "out" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=f"holds samples of generator version 1; .* version {GENERATOR_VERSION}"):
+        _write(tmp_path / "out", count=2, shard_size=1, config=config)
+    assert len(SyntheticHeadDataset(tmp_path / "out")) == 1  # the dataset as it is still reads

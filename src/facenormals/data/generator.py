@@ -39,6 +39,10 @@ from facenormals.models.morphable import MorphableModel
 __all__ = ["SynthBatch", "SynthConfig", "SyntheticHeadGenerator"]
 
 _STREAMS = ("shape", "pose", "camera", "skin", "hair", "light", "background", "extras")
+#: Version of what a (seed, index) draws: bumped whenever the same sample's bytes change (2: the
+#: framing solved by Newton's method, clutter colours clipped), so that a dataset is never resumed
+#: with samples of two generators (a manifest without it was written by version 1).
+GENERATOR_VERSION = 2
 #: Most iterations of the framing solve (it converges in 3 or 4), and the margin in pixels by which
 #: the framed head stays inside the image edges (float32 rounding of the stored camera moves ~1e-5 px).
 _FRAME_ITERATIONS = 50

@@ -2,7 +2,7 @@
 
 Layout of a dataset folder::
 
-    manifest.json          format, seed, count, shard size, model, generator config, background photos
+    manifest.json          format, seed, count, shard size, model, generator config and version, background photos
     shard_00000.npz        samples 0 .. 999
     shard_00001.npz        samples 1000 .. 1999
     ...
@@ -41,7 +41,7 @@ import numpy as np
 from facenormals.core.check import environment_integer
 from facenormals.core.files import PART, atomic_write
 from facenormals.data.backgrounds import PhotoLibrary
-from facenormals.data.generator import SynthBatch, SynthConfig
+from facenormals.data.generator import GENERATOR_VERSION, SynthBatch, SynthConfig
 
 __all__ = ["SynthSummary", "read_manifest", "write_dataset"]
 
@@ -314,6 +314,7 @@ def write_dataset(
         "model": _model_fingerprint(model),
         "config": config.to_dict(),
         "photos": photos,
+        "generator": GENERATOR_VERSION,
         "labels": _labels(),
     }
     path = root / MANIFEST
@@ -326,6 +327,11 @@ def write_dataset(
             manifest["model"] = {k: v for k, v in manifest["model"].items() if k != "content_sha256"}
         if "photos" not in existing:  # written before the photos were recorded
             del manifest["photos"]
+        written_by = int(existing.get("generator", 1))
+        if written_by != GENERATOR_VERSION:  # the same (seed, index) draws other bytes now
+            raise ValueError(f"{root}: holds samples of generator version {written_by}; this facenormals draws "
+                             f"version {GENERATOR_VERSION}, whose samples differ, so resuming would mix the two; "
+                             "use another folder (the dataset as it is still reads)")
         if int(existing.get("count", count)) > count:  # would rewrite the last shard and orphan later ones
             raise ValueError(f"{root}: holds a dataset of {existing['count']} samples; --count {count} would shrink "
                              "it (a count can only grow); use another folder, or the SyntheticHeadDataset "
