@@ -60,3 +60,13 @@ def ict_archive_or_skip() -> Path:
 def ict_npz() -> Path:
     """Path to the ICT-FaceKit archive (:func:`ict_archive_or_skip`)."""
     return ict_archive_or_skip()
+
+
+def headless_gl_or_skip() -> None:
+    """Skip the test where no headless OpenGL (EGL or OSMesa) is available."""
+    from facenormals.data import HeadlessGLError, select_gl_platform
+
+    try:
+        select_gl_platform()
+    except HeadlessGLError as error:
+        pytest.skip(f"no headless OpenGL: {error}")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import ict_archive_or_skip
+from tests.conftest import headless_gl_or_skip, ict_archive_or_skip
 
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIALS = ROOT / "docs" / "tutorials"
@@ -78,12 +78,7 @@ def test_the_block_parser():
 
 @pytest.fixture
 def headless_gl():
-    from facenormals.data import HeadlessGLError, select_gl_platform
-
-    try:
-        select_gl_platform()
-    except HeadlessGLError as error:
-        pytest.skip(f"no headless OpenGL: {error}")
+    headless_gl_or_skip()
 
 
 def test_compose(tmp_path, headless_gl):
@@ -105,3 +100,11 @@ def test_multiview_then_evaluate(tmp_path, headless_gl):
     (tmp_path / "examples").unlink()
     assert run_page("evaluate.md", tmp_path) == (1, 1)
     assert (tmp_path / "out" / "multiview" / "report.json").is_file()
+
+
+def test_every_code_block_is_run_or_shown_as_text():
+    """A tutorial block fenced otherwise (```py, ```sh, ```console) would never run here unnoticed."""
+    for page in sorted(TUTORIALS.glob("*.md")):
+        fences = re.findall(r"^```(\S*)$", page.read_text(), re.MULTILINE)
+        openings = fences[::2]  # fences alternate: opening (with the language), closing
+        assert set(openings) <= {"python", "bash", "text"}, (page.name, openings)

@@ -425,7 +425,8 @@ def test_predict_maps_checks_its_crops():
 
 
 def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
-    """Maps given are used as they are (no second prediction); maps of other crops are refused."""
+    """Maps given are used as they are (no second prediction); maps whose shapes do not fit the crops
+    are refused, field by field."""
     from facenormals.nn import NormalLandmarkUNet
     from facenormals.reconstruct import pipeline, reconstruct_views
 
@@ -433,8 +434,11 @@ def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
     crops = torch.rand(2, 3, 32, 32)
     maps = pipeline.predict_maps(net, crops)
     monkeypatch.setattr(pipeline, "predict_maps", lambda *a, **k: pytest.fail("predicted again"))
-    with pytest.raises(ValueError, match=r"maps: expected the maps of the 1 crops.*got \(2, 3, 32, 32\)"):
+    with pytest.raises(ValueError, match=r"maps: expected the maps of the 1 crops.*normal_maps.*got \(2, 3, 32, 32\)"):
         reconstruct_views(crops[:1], net, builtin_head_model(), maps=maps)
+    short = dataclasses.replace(maps, landmarks=maps.landmarks[:, :5])
+    with pytest.raises(ValueError, match=r"landmarks of shape \(2, 24, 2\), got \(2, 5, 2\)"):
+        reconstruct_views(crops, net, builtin_head_model(), maps=short)
     maps.found[:] = False  # no landmark in the given maps: the error says so, whatever the network would find
     maps.landmarks[:] = float("nan")
     with pytest.raises(ValueError, match="too few"):

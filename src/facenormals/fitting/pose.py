@@ -313,12 +313,8 @@ def prealign_pose(
     x0 = torch.cat([pnp[has_pnp], torch.cat([angles0, t0], dim=-1)])
     pts, targets, msk, K = model_points[owner], landmarks[owner], mask[owner], intrinsics[owner]
 
-    def residuals(x: Tensor) -> Tensor:
-        uv, _ = project_points(pts, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], K)
-        return landmark_residuals(uv, targets, msk).flatten(1)
-
     result = levenberg_marquardt(
-        residuals,
+        lambda x: _pose_residuals(x, pts, targets, msk, K).flatten(1),
         x0,
         jacobian_fn=lambda x: landmark_pose_jacobian(pts, x, K, msk),
         max_iterations=max_iterations,

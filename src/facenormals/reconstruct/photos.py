@@ -56,6 +56,11 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
     return views[0]
 
 
+def _network_input(crops: list[np.ndarray]) -> torch.Tensor:
+    """``(V, 3, S, S)`` float32 in ``[0, 1]`` from ``V`` ``(S, S, 3)`` uint8 crops."""
+    return torch.from_numpy(np.stack(crops)).permute(0, 3, 1, 2).float() / 255.0
+
+
 def _pick_faces(views: list[PhotoView], net, model, mirror: bool,
                 log: Callable[[str], None]) -> tuple[list[PhotoView], NetworkMaps]:
     """The network's maps of every photo's first detected face (one batch); for a photo whose first
@@ -64,7 +69,7 @@ def _pick_faces(views: list[PhotoView], net, model, mirror: bool,
     channels = landmark_channels(model)
 
     def predict(crops: list[np.ndarray]) -> NetworkMaps:
-        return predict_maps(net, torch.from_numpy(np.stack(crops)).permute(0, 3, 1, 2).float() / 255.0, mirror=mirror)
+        return predict_maps(net, _network_input(crops), mirror=mirror)
 
     maps = predict([v.crop for v in views])
     picked = list(views)
@@ -154,7 +159,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
 
     t = time.perf_counter()
     views, maps = _pick_faces(views, net, model, mirror, log)
-    crops = torch.from_numpy(np.stack([v.crop for v in views])).permute(0, 3, 1, 2).float() / 255.0
+    crops = _network_input([v.crop for v in views])
     if fit_weights is not None:
         fit_options["weights"] = fit_weights
     maps, fit = reconstruct_views(crops, net, model, log=log, mirror=mirror, view_names=[str(p) for p in paths],

@@ -254,7 +254,7 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
                       focal: float = DEFAULT_FOCAL, log: Callable[[str], None] | None = None,
                       mirror: bool = True, drop_hidden: bool = True, view_names: Sequence[str] | None = None,
                       maps: NetworkMaps | None = None, **fit_options: Any) -> tuple[NetworkMaps, FitResult]:
-    """Predict the maps of ``V`` crops of one person and fit one shared head to all of them.
+    """Predict the maps of ``V`` crops of one person (or take ``maps``) and fit one shared head to all of them.
 
     Args:
         crops: ``(V, 3, S, S)`` network inputs in ``[0, 1]``.
@@ -281,9 +281,13 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     V, _, S, _ = crops.shape
     if maps is None:
         maps = predict_maps(net, crops, mirror=mirror)
-    elif tuple(maps.normal_maps.shape) != (V, 3, S, S):
-        raise ValueError(f"maps: expected the maps of the {V} crops, normal maps of shape {(V, 3, S, S)}, "
-                         f"got {tuple(maps.normal_maps.shape)}")
+    else:
+        L = maps.found.shape[-1]
+        for name, shape in (("normal_maps", (V, 3, S, S)), ("landmark_maps", (V, L, S, S)),
+                            ("landmarks", (V, L, 2)), ("found", (V, L))):
+            if tuple(getattr(maps, name).shape) != shape:
+                raise ValueError(f"maps: expected the maps of the {V} crops of {S}x{S} px, {name} of shape {shape}, "
+                                 f"got {tuple(getattr(maps, name).shape)}")
     log(f"network: {V} view(s) in {maps.seconds * 1e3:.0f} ms; landmarks found per view: "
         f"{', '.join(str(int(n)) for n in maps.found.sum(1).tolist())} of {maps.found.shape[1]}")
     inputs = fit_inputs(maps, model, focal, drop_hidden and "initial_pose" not in fit_options)
