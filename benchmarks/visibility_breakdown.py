@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader, Subset
 
 from facenormals.data import SyntheticHeadDataset, landmarks_from_maps
 from facenormals.data.scene import LABELS
-from facenormals.fitting import hidden_landmarks, prealign_pose
+from facenormals.fitting import drop_hidden_landmarks, hidden_landmarks
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.models import load_model
 from facenormals.nn import load_weights, mirror_averaged
@@ -52,15 +52,14 @@ def predict(net, dataset, keys=("landmark_visible",)) -> dict[str, Tensor]:
 
 
 def pose_gate(points: Tensor, found: Tensor, model, size: int) -> Tensor:
-    """``(B, L)`` hidden by the mean head pre-aligned to the detections (as drop_hidden_landmarks judges)."""
+    """``(B, L)`` the detections that ``drop_hidden_landmarks`` drops (hidden by the mean head
+    pre-aligned to them; none in a view that would keep fewer than 4), as ``reconstruct`` does."""
     K = torch.tensor([DEFAULT_FOCAL, (size - 1) / 2, (size - 1) / 2], dtype=model.mean.dtype).expand(len(found), 3)
-    hidden = torch.zeros_like(found)
-    usable = torch.nonzero(found.sum(1) >= 4).squeeze(1)
-    for chunk in usable.split(100):
-        pose = prealign_pose(points[chunk].to(model.mean), model.mean[model.landmark_indices], K[chunk],
-                             found[chunk], robust_scale=3.0)
-        hidden[chunk] = hidden_landmarks(model, pose.rotation, pose.translation, K[chunk], (size, size))
-    return hidden
+    dropped = torch.zeros_like(found)
+    for chunk in torch.arange(len(found)).split(100):
+        kept, _ = drop_hidden_landmarks(points[chunk].to(model.mean), found[chunk], model, K[chunk], (size, size))
+        dropped[chunk] = found[chunk] & ~kept
+    return dropped
 
 
 def gated(peak: Tensor, points: Tensor, threshold: Tensor, model, size: int) -> Tensor:
