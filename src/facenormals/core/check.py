@@ -27,9 +27,9 @@ __all__ = [
     "check_nonnegative",
     "check_same_dims",
     "check_same_dtype_device",
-    "environment_integer",
     "check_shape",
     "check_tensor",
+    "environment_integer",
 ]
 
 
