@@ -69,3 +69,28 @@ def test_integers_from_numpy_and_torch_are_integers():
     for bad in (True, np.bool_(True), 2.0, torch.tensor(2.0), "2"):
         with pytest.raises(ValueError, match="radius: expected an integer"):
             check_integer(bad, "radius")
+
+
+def test_check_finite_may_allow_inf_but_never_nan():
+    check_finite(torch.tensor([1.0, float("inf")]), "zbuffer", allow_inf=True)
+    with pytest.raises(ValueError, match="zbuffer: expected finite values, got 1 NaN or infinite entries"):
+        check_finite(torch.tensor([1.0, float("inf")]), "zbuffer")
+    with pytest.raises(ValueError, match="zbuffer: expected no NaN values, got 2 NaN entries"):
+        check_finite(torch.tensor([float("nan"), float("nan"), float("inf")]), "zbuffer", allow_inf=True)
+
+
+@pytest.mark.parametrize("value", [0.5, -2, torch.tensor(1.5)])
+def test_check_real_accepts_numbers(value):
+    from facenormals.core.check import check_real
+
+    assert check_real(value, "x") == float(value)
+
+
+@pytest.mark.parametrize("value,match", [("0.2", "expected a real number, got str"), (True, "expected a real number"),
+                                         (float("nan"), "expected a finite number, got nan"),
+                                         (torch.ones(2), "expected a real number, got Tensor")])
+def test_check_real_refuses_the_rest(value, match):
+    from facenormals.core.check import check_real
+
+    with pytest.raises(ValueError, match=f"x: {match}"):
+        check_real(value, "x")

@@ -67,3 +67,20 @@ def test_decoding_with_one_threshold_per_channel():
     assert found.tolist() == [[True, False]]
     with pytest.raises(ValueError, match="threshold"):
         landmarks_from_maps(z, threshold=torch.tensor([0.1, 0.2, 0.3]))
+
+
+def test_bfloat16_peaks_lie_on_the_right_pixel():
+    """bfloat16 holds whole numbers exactly only up to 256: the pixel grid is built in float32."""
+    points = torch.tensor([[[300.0, 10.0]]])
+    maps = landmark_maps(points.bfloat16(), None, (20, 400))
+    assert maps.dtype == torch.bfloat16
+    assert int(maps[0, 0].float().argmax()) == 10 * 400 + 300
+
+
+def test_scalar_options_and_empty_maps_are_checked():
+    with pytest.raises(ValueError, match="sigma: expected a real number, got str"):
+        landmark_maps(torch.zeros(1, 1, 2), None, (8, 8), sigma="x")
+    with pytest.raises(ValueError, match="sigma: expected a real number, got Tensor"):
+        landmark_maps(torch.zeros(1, 1, 2), None, (8, 8), sigma=torch.tensor([1.0, 2.0]))
+    with pytest.raises(ValueError, match=r"maps: expected H, W >= 1, got shape \(1, 2, 0, 5\)"):
+        landmarks_from_maps(torch.zeros(1, 2, 0, 5))

@@ -144,3 +144,16 @@ def test_three_points_in_a_plane_are_enough():
     s, R_fit, t = fit_similarity(source, target)
     assert_close(s, torch.tensor([1.5], dtype=torch.float64))
     assert_close(R_fit, R)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_is_solved_in_float32(dtype):
+    """torch has no half-precision SVD: the fit runs in float32 and returns the input's dtype."""
+    g = torch.Generator().manual_seed(3)
+    source = torch.randn(2, 20, 3, generator=g)
+    R = torch.from_numpy(Rotation.random(2, random_state=1).as_matrix()).float()
+    target = 1.5 * source @ R.transpose(1, 2) + torch.tensor([1.0, -2.0, 0.5])
+    s, R_fit, t = fit_similarity(source.to(dtype), target.to(dtype))
+    assert s.dtype == R_fit.dtype == t.dtype == dtype
+    assert_close(R_fit.float(), R, atol=0.05, rtol=0)
+    assert_close(s.float(), torch.full((2,), 1.5), atol=0.05, rtol=0)

@@ -148,3 +148,12 @@ def test_drop_hidden_landmarks_runs_where_the_model_is(device):
                                    (128, 128))
     assert got.device == found.device and torch.equal(got, expected)
     assert hidden_landmarks(cpu_model.to(device), R, t, K, (128, 128)).device == device
+
+
+def test_hidden_landmarks_checks_the_pose_and_image_size(model):
+    R = euler_to_rotation_matrix(torch.zeros(1, 3))
+    t, K = torch.tensor([[0.0, 0.0, 600.0]]), torch.tensor([[300.0, 63.5, 63.5]])
+    with pytest.raises(ValueError, match="rotation: expected finite values"):
+        hidden_landmarks(model, R * math.nan, t, K, (128, 128))  # NaN would hide every landmark
+    with pytest.raises(ValueError, match=r"image_size: expected \(H, W\), two integers >= 1"):
+        hidden_landmarks(model, R, t, K, (128.9, 64.5))

@@ -132,3 +132,20 @@ def test_projection_jacobian_checks_the_intrinsics():
         projection_jacobian(points, torch.ones(1, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="intrinsics: expected dtype torch.float32"):
         projection_jacobian(points, torch.ones(1, 3, dtype=torch.long))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_keeps_the_dtype_and_does_not_overflow(dtype):
+    """f·x overflows float16 (f = 1000 px, x = 180 mm); the result keeps the input dtype."""
+    from facenormals.geometry import projection_jacobian
+
+    points = torch.tensor([[[-180.0, 120.0, 0.0]]])
+    R, t, K = torch.eye(3)[None], torch.tensor([[0.0, 0.0, 600.0]]), torch.tensor([[1000.0, 64.0, 64.0]])
+    expected, _ = project_points(points, R, t, K)
+    pixels, depth = project_points(points.to(dtype), R.to(dtype), t.to(dtype), K.to(dtype))
+    assert pixels.dtype == dtype and depth.dtype == dtype
+    assert torch.isfinite(pixels).all()
+    assert_close(pixels.float(), expected, rtol=1e-2, atol=0.5)
+    jac = projection_jacobian(transform_points(points, R, t).to(dtype), K.to(dtype))
+    assert jac.dtype == dtype
+    assert_close(jac.float(), projection_jacobian(transform_points(points, R, t), K), rtol=1e-2, atol=1e-3)

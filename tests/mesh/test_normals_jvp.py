@@ -114,3 +114,19 @@ def test_values_for_vertices_that_require_grad_and_empty_batches():
     assert dn.shape == (0, *v.shape, 2)
     with pytest.raises(ValueError, match="tangents: expected a torch.Tensor"):
         vertex_normals_jvp(v[None], faces, tangents.tolist())
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_gives_zero_normals_at_unused_vertices(dtype):
+    """The norms' eps clamp is 0 in half precision: computed in float32, an unused vertex keeps the
+    zero normal (and Jacobian) of vertex_normals instead of 0/0."""
+    vertices = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [5, 5, 5]]])
+    faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    tangents = torch.randn(2, 5, 3, generator=torch.Generator().manual_seed(0))
+    n, dn = vertex_normals_jvp(vertices.to(dtype), faces, tangents.to(dtype))
+    assert n.dtype == dtype and dn.dtype == dtype
+    assert torch.isfinite(n).all() and torch.isfinite(dn).all()
+    assert (n[0, 4] == 0).all() and (dn[0, 4] == 0).all()
+    n32, dn32 = vertex_normals_jvp(vertices, faces, tangents)
+    assert_close(n.float(), n32, atol=1e-2, rtol=1e-2)
+    assert_close(dn.float(), dn32, atol=3e-2, rtol=3e-2)

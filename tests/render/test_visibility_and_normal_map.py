@@ -120,3 +120,54 @@ def test_given_normals_must_match_the_vertices(posed_head):
 def test_unoccluded_points_checks_the_tolerance():
     with pytest.raises(ValueError, match="tolerance: expected a finite number >= 0, got nan"):
         unoccluded_points(torch.ones(1, 1, 2), torch.ones(1, 1), torch.ones(1, 3, 3), tolerance=float("nan"))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_reads_the_right_pixel(dtype):
+    """The flat pixel index v * W + u is integer arithmetic: in float16 (exact up to 2048) or bfloat16
+    (256) it would name a neighbouring pixel of a 64-wide image."""
+    from facenormals.render import splat_zbuffer
+
+    zbuffer = torch.full((1, 64, 64), math.inf)
+    zbuffer[0, 40, 1] = 1.0
+    pixels, depth = torch.tensor([[[1.0, 40.0]]]), torch.tensor([[5.0]])
+    assert not bool(unoccluded_points(pixels, depth, zbuffer)[0, 0])  # behind the surface at (40, 1)
+    assert not bool(unoccluded_points(pixels.to(dtype), depth.to(dtype), zbuffer.to(dtype))[0, 0])
+    splat = splat_zbuffer(torch.tensor([[[1.0, 40.0]]], dtype=dtype), torch.tensor([[2.0]], dtype=dtype), (64, 64), 0)
+    assert splat.dtype == dtype and float(splat[0, 40, 1]) == 2.0 and torch.isinf(splat[0, 40, 0])
+
+
+def test_nan_inputs_are_errors_not_background(posed_head):
+    """NaN vertices, normals or poses would silently read as background, hidden or back-facing."""
+    model, vertices, R, t, K = posed_head
+    bad = vertices.clone()
+    bad[0, 10] = math.nan
+    with pytest.raises(ValueError, match="vertices: expected finite values, got 3 NaN"):
+        render_normal_map(bad, model.faces, R, t, K, (32, 32))
+    with pytest.raises(ValueError, match="normals: expected finite values"):
+        render_normal_map(vertices, model.faces, R, t, K, (32, 32), normals=torch.full_like(vertices, math.nan))
+    with pytest.raises(ValueError, match="rotation: expected finite values"):
+        render_normal_map(vertices, model.faces, R * math.nan, t, K, (32, 32))
+    pixels, depth = project_points(bad, R, t, K)
+    with pytest.raises(ValueError, match="pixels: expected finite values"):
+        rasterize_triangles(pixels, depth, model.faces, (32, 32))
+    pixels, depth = project_points(vertices, R, t, K)
+    camera = transform_points(vertices, R, t)
+    normals = vertex_normals(vertices, model.faces) @ R.transpose(1, 2)
+    zbuffer = torch.full((1, 32, 32), math.inf, dtype=vertices.dtype)
+    with pytest.raises(ValueError, match="camera_normals: expected finite values"):
+        visible_vertices(pixels, depth, normals * math.nan, camera, zbuffer)
+    with pytest.raises(ValueError, match="min_facing: expected a finite number, got nan"):
+        visible_vertices(pixels, depth, normals, camera, zbuffer, min_facing=math.nan)
+    with pytest.raises(ValueError, match="min_facing: expected a real number, got str"):
+        visible_vertices(pixels, depth, normals, camera, zbuffer, min_facing="0.2")
+    with pytest.raises(ValueError, match="zbuffer: expected no NaN values, got 1024 NaN entries"):
+        unoccluded_points(pixels, depth, zbuffer * math.nan)
+
+
+def test_empty_batches_and_images():
+    """B = 0 gives an empty answer; a z-buffer without pixels is an error naming it."""
+    empty = unoccluded_points(torch.zeros(0, 5, 2), torch.zeros(0, 5), torch.zeros(0, 4, 4))
+    assert empty.shape == (0, 5) and empty.dtype == torch.bool
+    with pytest.raises(ValueError, match=r"zbuffer: expected H, W >= 1, got shape \(1, 0, 4\)"):
+        unoccluded_points(torch.zeros(1, 5, 2), torch.ones(1, 5), torch.zeros(1, 0, 4))

@@ -25,6 +25,7 @@ __all__ = [
     "check_image_size",
     "check_integer",
     "check_nonnegative",
+    "check_real",
     "check_same_dims",
     "check_same_dtype_device",
     "check_shape",
@@ -170,12 +171,24 @@ def check_faces(faces: object, num_vertices: int, name: str = "faces") -> dict[s
     return dims
 
 
-def check_finite(x: Tensor, name: str) -> None:
-    """Raise ``ValueError`` if ``x`` holds NaN or infinite values.
+def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
+    """Raise ``ValueError`` if ``x`` holds NaN or infinite values (only NaN with ``allow_inf``, e.g. for
+    a z-buffer that is ``inf`` on background).
 
     The check reads tensor values, so it is skipped while ``torch.compile`` traces.
+
+    Example:
+        >>> check_finite(torch.tensor([1.0, float("inf")]), "zbuffer", allow_inf=True)
+        >>> check_finite(torch.tensor([1.0, float("nan")]), "zbuffer", allow_inf=True)
+        Traceback (most recent call last):
+        ...
+        ValueError: zbuffer: expected no NaN values, got 1 NaN entries
     """
     if torch.compiler.is_compiling():
+        return
+    if allow_inf:
+        if bool(torch.isnan(x).any()):
+            raise ValueError(f"{name}: expected no NaN values, got {int(torch.isnan(x).sum())} NaN entries")
         return
     if not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).sum())
@@ -194,6 +207,28 @@ def check_nonnegative(value: object, name: str) -> float:
     number = float(value)
     if not math.isfinite(number) or number < 0:
         raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    return number
+
+
+def check_real(value: object, name: str) -> float:
+    """Return ``value`` as a float, raising ``ValueError`` unless it is a finite real number (a Python
+    or numpy number; not a bool, a string or a tensor of several values).
+
+    Example:
+        >>> check_real(-0.25, "min_facing")
+        -0.25
+        >>> check_real("0.2", "min_facing")
+        Traceback (most recent call last):
+        ...
+        ValueError: min_facing: expected a real number, got str '0.2'
+    """
+    if isinstance(value, Tensor) and value.numel() == 1 and value.dtype.is_floating_point:
+        value = value.item()
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
+        raise ValueError(f"{name}: expected a real number, got {type(value).__name__} {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
     return number
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_image_size, check_shape
+from facenormals.core.check import check_finite, check_floating, check_image_size, check_nonnegative, check_shape
 
 __all__ = ["landmark_maps", "landmarks_from_maps"]
 
@@ -64,8 +64,11 @@ def landmark_maps(
         if visible.dtype != torch.bool:
             raise ValueError(f"visible: expected a bool tensor, got dtype {visible.dtype}")
     height, width = check_image_size(image_size)
+    sigma, radius = check_nonnegative(sigma, "sigma"), check_nonnegative(radius, "radius")
     if not sigma > 0 or not radius > 0:
         raise ValueError(f"sigma, radius: expected positive values, got {sigma}, {radius}")
+    if points.dtype in (torch.float16, torch.bfloat16):  # the pixel grid is inexact above 2048 (bfloat16: 256)
+        return landmark_maps(points.float(), visible, image_size, sigma, radius).to(points.dtype)
     finite = torch.isfinite(points).all(-1)
     draw = finite if visible is None else finite & visible.to(points.device)
     safe = torch.where(draw[..., None], points, torch.zeros((), dtype=points.dtype, device=points.device))
@@ -109,6 +112,8 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
     check_floating(maps, "maps")
     check_finite(maps, "maps")  # a NaN peak would read as "not found"
     b, l, h, w = dims["B"], dims["L"], dims["H"], dims["W"]
+    if h < 1 or w < 1:
+        raise ValueError(f"maps: expected H, W >= 1, got shape {tuple(maps.shape)}")
     threshold = torch.as_tensor(threshold, dtype=maps.dtype, device=maps.device)
     if threshold.dim() != 0:
         check_shape(threshold, [l], "threshold")

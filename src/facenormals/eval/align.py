@@ -94,6 +94,9 @@ def fit_similarity(
         if bool((total <= 0).any()):
             raise ValueError("weights: expected a positive sum for every problem")
         w = weights / total
+    if source.dtype in (torch.float16, torch.bfloat16):  # torch has no half-precision SVD
+        s_, rotation, t = fit_similarity(source.float(), target.float(), w.float(), scale)
+        return s_.to(source.dtype), rotation.to(source.dtype), t.to(source.dtype)
     mu_s = (w[..., None] * source).sum(dim=1)
     mu_t = (w[..., None] * target).sum(dim=1)
     xs = source - mu_s[:, None]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_finite, check_floating, check_image_size, check_shape
 from facenormals.fitting.pose import PoseEstimate, prealign_pose
 from facenormals.geometry import project_points
 from facenormals.models import MorphableModel
@@ -71,7 +71,11 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     if shape is not None:
         check_shape(shape, ["B", model.num_shape], "shape", dims)
-    height, width = int(image_size[0]), int(image_size[1])
+    for name, x in (("rotation", rotation), ("translation", translation), ("intrinsics", intrinsics)) + (
+            (("shape", shape),) if shape is not None else ()):
+        check_floating(x, name)
+        check_finite(x, name)  # NaN would silently read as "every landmark hidden"
+    height, width = check_image_size(image_size)
     dtype, device = model.mean.dtype, model.mean.device
     coeffs = shape if shape is not None else torch.zeros(dims["B"], model.num_shape, dtype=dtype, device=device)
     vertices = model(coeffs.to(device=device, dtype=dtype))

@@ -9,6 +9,8 @@ from facenormals.core.check import check_floating, check_same_dtype_device, chec
 
 __all__ = ["project_points", "projection_jacobian", "transform_points"]
 
+_HALF = (torch.float16, torch.bfloat16)
+
 
 def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor) -> dict[str, int]:
     dims = check_shape(points, ["B", "N", 3], "points")
@@ -92,6 +94,9 @@ def project_points(
     dims = _check_pose(points, rotation, translation)
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_same_dtype_device(points, "points", intrinsics=intrinsics)
+    if points.dtype in _HALF:  # f·x overflows float16 at ~65k (f = 1000 px, x = 66 mm); exact in float32
+        pixels, z = project_points(points.float(), rotation.float(), translation.float(), intrinsics.float(), eps)
+        return pixels.to(points.dtype), z.to(points.dtype)
     camera = torch.matmul(points + translation[:, None, :], rotation.transpose(1, 2))
     z = camera[..., 2]
     z_safe = torch.where(z.abs() < eps, torch.full_like(z, eps) * torch.where(z < 0, -1.0, 1.0), z)
@@ -130,6 +135,8 @@ def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_floating(camera_points, "camera_points")
     check_same_dtype_device(camera_points, "camera_points", intrinsics=intrinsics)
+    if camera_points.dtype in _HALF:
+        return projection_jacobian(camera_points.float(), intrinsics.float(), eps).to(camera_points.dtype)
     x, y, z = camera_points.unbind(-1)
     z = torch.where(z.abs() < eps, torch.full_like(z, eps) * torch.where(z < 0, -1.0, 1.0), z)
     scale = intrinsics[:, None, 0] / z

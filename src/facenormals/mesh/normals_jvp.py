@@ -45,6 +45,9 @@ def _jvp_one(
     With ``corners`` (the faces' corners renumbered into ``num_out`` output rows, ``num_out - 1`` being
     a discarded row) only a subset of the vertices is produced.
     """
+    if vertices.dtype in (torch.float16, torch.bfloat16):  # the eps clamps round to 0: 0/0 at unused vertices
+        n, d_n = _jvp_one(vertices.float(), faces, d_e1.float(), d_e2.float(), eps, corners, num_out)
+        return n.to(vertices.dtype), d_n.to(vertices.dtype)
     if corners is None:
         corners, num_out = faces, vertices.shape[0]
     num_vertices = num_out

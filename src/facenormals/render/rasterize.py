@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_faces, check_floating, check_image_size, check_shape
+from facenormals.core.check import check_faces, check_finite, check_floating, check_image_size, check_shape
 
 __all__ = ["Fragments", "interpolate_vertex_attributes", "rasterize_depth", "rasterize_triangles"]
 
@@ -54,6 +54,8 @@ def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_siz
     check_faces(faces, dims["N"])
     check_floating(pixels, "pixels")
     check_floating(depth, "depth")
+    check_finite(pixels, "pixels")  # a NaN triangle would silently leave a hole
+    check_finite(depth, "depth")
     height, width = check_image_size(image_size)
     return dims["B"], height, width
 

@@ -5,7 +5,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_image_size, check_integer, check_nonnegative, check_shape
+from facenormals.core.check import (
+    check_finite,
+    check_floating,
+    check_image_size,
+    check_integer,
+    check_nonnegative,
+    check_real,
+    check_shape,
+)
 
 __all__ = ["splat_zbuffer", "unoccluded_points", "visible_vertices"]
 
@@ -54,6 +62,9 @@ def visible_vertices(
     check_shape(camera_points, ["B", "N", 3], "camera_points", dims)
     check_floating(camera_normals, "camera_normals")
     check_floating(camera_points, "camera_points")
+    check_finite(camera_normals, "camera_normals")  # NaN would silently read as "not facing"
+    check_finite(camera_points, "camera_points")
+    min_facing = check_real(min_facing, "min_facing")
     with torch.no_grad():
         facing = (camera_normals * camera_points).sum(-1) / camera_points.norm(dim=-1).clamp_min(1e-12)
         front = facing < -min_facing
@@ -64,6 +75,12 @@ def _nearest_pixel(pixels: Tensor) -> tuple[Tensor, Tensor]:
     """The nearest pixel centre's ``(u, v)``; a point that projects nowhere (NaN) goes to ``-1``, outside."""
     rounded = torch.round(pixels).nan_to_num(nan=-1.0)
     return rounded[..., 0], rounded[..., 1]
+
+
+def _flat_index(u: Tensor, v: Tensor, height: int, width: int) -> Tensor:
+    """``v * W + u`` of the clamped pixel, in integers: float16 holds whole numbers exactly only up
+    to 2048 (bfloat16 256), so the product in the pixels' dtype would name a neighbouring pixel."""
+    return v.clamp(0, height - 1).long() * width + u.clamp(0, width - 1).long()
 
 
 @torch.no_grad()
@@ -95,12 +112,15 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     zdims = check_shape(zbuffer, ["B", "H", "W"], "zbuffer", dims)
     for name, x in (("pixels", pixels), ("depth", depth), ("zbuffer", zbuffer)):
         check_floating(x, name)
+    check_finite(zbuffer, "zbuffer", allow_inf=True)  # inf is background, NaN would hide every point
     tolerance = check_nonnegative(tolerance, "tolerance")  # NaN would hide every point
     height, width = zdims["H"], zdims["W"]
+    if height < 1 or width < 1:
+        raise ValueError(f"zbuffer: expected H, W >= 1, got shape {tuple(zbuffer.shape)}")
     u, v = _nearest_pixel(pixels)
     inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)
-    index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
-    surface = torch.gather(zbuffer.reshape(dims["B"], -1), 1, index)
+    index = _flat_index(u, v, height, width)
+    surface = torch.gather(zbuffer.reshape(dims["B"], height * width), 1, index)
     return inside & (depth <= surface + tolerance)
 
 
@@ -132,7 +152,7 @@ def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], ra
     batch = dims["B"]
     u, v = _nearest_pixel(pixels)
     ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0) & torch.isfinite(depth)
-    index = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).long()
+    index = _flat_index(u, v, height, width)
     values = torch.where(ok, depth, torch.full_like(depth, float("inf")))
     zbuf = torch.full((batch, height * width), float("inf"), dtype=depth.dtype, device=depth.device)
     zbuf.scatter_reduce_(1, index, values, reduce="amin")
