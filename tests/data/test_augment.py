@@ -45,3 +45,10 @@ def test_bad_arguments():
         PhotoAugmentation(noise_std=(0.1, 0.0))
     with pytest.raises(ValueError, match=r"images: expected shape \(B, 3, H, W\)"):
         PhotoAugmentation()(torch.rand(2, 4, 8, 8))
+
+
+def test_numpy_images_are_refused():
+    import numpy as np
+
+    with pytest.raises(ValueError, match="images: expected a torch.Tensor, got ndarray"):
+        PhotoAugmentation()(np.zeros((1, 3, 8, 8), np.float32))

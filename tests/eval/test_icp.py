@@ -105,7 +105,10 @@ def test_rejection_of_distant_pairs(surface):
         ({"init": (-1.0, torch.eye(3), torch.zeros(3))}, r"init: expected finite values and a positive scale"),
         ({"direction": "both"}, r"direction: expected one of"),
         ({"max_distance": -1.0}, r"max_distance: expected a positive number"),
-        ({"max_iterations": 2.5}, r"max_iterations: expected a non-negative integer"),
+        ({"max_iterations": 2.5}, r"max_iterations: expected an integer, got float 2.5"),
+        ({"max_iterations": -1}, r"max_iterations: expected an integer >= 0, got -1"),
+        ({"tolerance": "x"}, r"tolerance: expected a real number, got str"),
+        ({"max_distance": "1"}, r"max_distance: expected a positive number or None, got '1'"),
         ({"target_normals": torch.zeros(6, 3)}, r"target_normals: expected at least 6 non-zero normals to fit a rigid transform, got 0"),
     ],
 )

@@ -111,8 +111,19 @@ def test_bad_input(model, head):
         fit_head(obs.normal_maps, obs.landmarks, model, landmark_mask=torch.ones(2, 24, dtype=torch.bool))
     with pytest.raises(ValueError, match="rounds"):
         fit_head(obs.normal_maps, obs.landmarks, model, rounds=0)
-    with pytest.raises(ValueError, match="visibility_rounds: expected >= 1"):
+    with pytest.raises(ValueError, match="visibility_rounds: expected an integer >= 1, got 0"):
         fit_head(obs.normal_maps, obs.landmarks, model, visibility_rounds=0)
+    with pytest.raises(ValueError, match="rounds: expected an integer, got float 1.5"):
+        fit_head(obs.normal_maps, obs.landmarks, model, rounds=1.5)
+    with pytest.raises(ValueError, match="normal_maps: expected a floating-point tensor, got dtype torch.int64"):
+        fit_head(obs.normal_maps.long(), obs.landmarks, model)  # unit normals would truncate to an empty map
+    with pytest.raises(ValueError, match=r"normal_maps: expected at least one subject, one view and one pixel, got "
+                                         r"shape \(1, 0, 3, 32, 32\)"):
+        fit_head(obs.normal_maps[:, :0], obs.landmarks[:, :0], model)
+    nan_centre = obs.intrinsics.clone()
+    nan_centre[..., 1] = float("nan")
+    with pytest.raises(ValueError, match="intrinsics: expected finite values"):
+        fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=nan_centre, initial_pose=(obs.angles, obs.translation))
     with pytest.raises(ValueError, match="landmark_robust_scale: expected a number > 0"):
         fit_head(obs.normal_maps, obs.landmarks, model, landmark_robust_scale=0.0)
     with pytest.raises(ValueError, match="robust_scale: expected a number > 0"):

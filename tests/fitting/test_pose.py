@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -245,3 +246,14 @@ def test_pose_jacobian_checks_the_mask():
         landmark_pose_jacobian(points, x, K, torch.ones(4, dtype=torch.bool))
     with pytest.raises(ValueError, match="mask: expected a bool tensor, got dtype torch.int64"):
         landmark_pose_jacobian(points, x, K, torch.full((2, 4), 3))
+
+
+def test_pose_inputs_are_checked_before_use():
+    points = torch.zeros(1, 4, 3, dtype=torch.float64)
+    x = torch.tensor([[0.0, 0, 0, 0, 0, 500]])
+    with pytest.raises(ValueError, match=r"x: expected dtype torch.float64 \(the dtype of points\), got torch.float32"):
+        landmark_pose_jacobian(points, x, torch.tensor([[500.0, 64, 64]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="model_points: expected a torch.Tensor, got ndarray"):
+        prealign_pose(torch.zeros(1, 4, 2), np.zeros((4, 3)), torch.tensor([[500.0, 64, 64]]))
+    with pytest.raises(ValueError, match=r"landmarks: expected at least one view, got shape \(0, 4, 2\)"):
+        prealign_pose(torch.zeros(0, 4, 2), torch.zeros(4, 3), torch.zeros(0, 3))

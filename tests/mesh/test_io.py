@@ -70,3 +70,15 @@ def test_obj_with_normals_keeps_its_trailing_unused_vertices(tmp_path):
     vertices, faces = load_mesh(path)
     assert vertices.shape == (5, 3) and vertices[4].tolist() == [9.0, 9.0, 9.0]
     assert faces.tolist() == [[0, 1, 2], [1, 3, 2]]
+
+
+def test_save_mesh_refuses_point_formats_and_nan(tmp_path):
+    vertices, faces = torch.eye(3), torch.tensor([[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"x.xyz: expected a mesh file name ending in one of .ply, .obj, .off, .glb, "
+                                         r".stl, got '.xyz'"):
+        save_mesh(tmp_path / "x.xyz", vertices, faces)
+    with pytest.raises(ValueError, match="no suffix"):
+        save_mesh(tmp_path / "mesh", vertices, faces)
+    with pytest.raises(ValueError, match="vertices: expected finite values, got 1 NaN"):
+        save_mesh(tmp_path / "x.ply", torch.tensor([[0.0, 0, 0], [1, 0, float("nan")], [0, 1, 0]]), faces)
+    assert not list(tmp_path.iterdir())  # nothing written

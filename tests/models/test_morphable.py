@@ -209,3 +209,9 @@ def test_sampling_and_export_check_their_arguments(tmp_path):
         model.export_mesh(tmp_path / "head.foo")
     with pytest.raises(ValueError, match=r"shape_coeffs: expected shape \(3,\) or \(1, 3\), got \(2, 3\)"):
         model.export_mesh(tmp_path / "head.ply", torch.zeros(2, 3))
+
+
+def test_landmark_indices_must_be_integers():
+    """int() would truncate 2.7 to vertex 2."""
+    with pytest.raises(ValueError, match=r"landmarks\['a'\]: expected an integer, got float 2.7"):
+        MorphableModel(torch.zeros(5, 3), torch.zeros(3, 5, 3), torch.tensor([[0, 1, 2]]), landmarks={"a": 2.7})

@@ -83,3 +83,10 @@ def test_bad_input_names_the_argument():
         mirror_output(UNetOutput(n, torch.rand(1, 2, 6, 7), torch.randn(1, 1, 4, 5)), [1, 0])
     with pytest.raises(ValueError, match=r"output.foreground_logits: expected shape \(B, 1, H, W\) with B=1 .*got \(2, 1, 4, 5\)"):
         mirror_output(UNetOutput(n, torch.rand(1, 2, 4, 5), torch.randn(2, 1, 4, 5)), [1, 0])
+
+
+def test_permutation_of_non_integers_is_refused():
+    """int() would truncate 1.5 to a valid index."""
+    out = UNetOutput(torch.zeros(1, 3, 4, 4), torch.zeros(1, 4, 4, 4), torch.zeros(1, 1, 4, 4))
+    with pytest.raises(ValueError, match=r"permutation: expected a permutation of 0..3, got \[1.5, 0, 3, 2\]"):
+        mirror_output(out, [1.5, 0, 3, 2])

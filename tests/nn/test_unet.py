@@ -348,3 +348,9 @@ def test_a_half_precision_network_gives_unit_or_zero_normals():
         large = net(images).normals
     assert zero.dtype == torch.float16 and bool(torch.isfinite(zero).all()) and float(zero.abs().max()) == 0.0
     torch.testing.assert_close(large.float().norm(dim=1), torch.ones(1, 16, 16), atol=2e-3, rtol=0)
+
+
+def test_loss_of_an_empty_batch_is_an_error():
+    out = UNetOutput(torch.zeros(0, 3, 8, 8), torch.zeros(0, 2, 8, 8), torch.zeros(0, 1, 8, 8))
+    with pytest.raises(ValueError, match=r"output.normals: expected at least one image and pixel, got shape \(0, 3, 8, 8\)"):
+        normal_landmark_loss(out, torch.zeros(0, 3, 8, 8), torch.zeros(0, 2, 8, 8))

@@ -135,6 +135,8 @@ def test_fit_inputs_checks_its_inputs(oracle):
     maps.found = torch.zeros(1, 24, dtype=torch.bool)
     with pytest.raises(ValueError, match="focal"):
         fit_inputs(maps, model, focal=0.0)
+    with pytest.raises(ValueError, match="focal: expected a real number, got str"):
+        fit_inputs(maps, model, focal="300")
     maps = NetworkMaps(torch.zeros(1, 3, 128, 128), torch.zeros(1, 4, 128, 128), torch.zeros(1, 4, 2),
                        torch.zeros(1, 4, dtype=torch.bool))
     with pytest.raises(ValueError, match="landmark channels"):

@@ -58,3 +58,9 @@ def test_overlay_argument_checks(tmp_path):
         draw_alignment(image, points, path=tmp_path / "o.unknown")
     assert list(tmp_path.iterdir()) == []
     assert draw_alignment(image, points, visible=torch.tensor([True, False])).sum() > 0
+
+
+def test_overlay_max_points_must_be_a_positive_integer():
+    image = np.zeros((8, 8, 3), np.uint8)
+    with pytest.raises(ValueError, match="max_points: expected an integer >= 1, got -1"):
+        draw_alignment(image, torch.zeros(3, 2), max_points=-1)

@@ -56,3 +56,12 @@ def test_shading_checks_its_arguments():
         shade_normal_map(n, light=(0.0, 1.0))
     with pytest.raises(ValueError, match=r"ambient: expected a value in \[0, 1\]"):
         shade_normal_map(n, ambient=1.5)
+
+
+def test_light_and_ambient_must_be_numbers():
+    nmap = torch.zeros(1, 3, 2, 2)
+    nmap[:, 2] = -1.0
+    with pytest.raises(ValueError, match="light: expected a non-zero finite direction"):
+        shade_normal_map(nmap, light="abc")
+    with pytest.raises(ValueError, match="ambient: expected a real number, got str"):
+        shade_normal_map(nmap, ambient="0.2")

@@ -151,3 +151,17 @@ def test_normal_angles_refuses_nan_and_integer_maps():
         normal_angles(bad, n, mask)
     with pytest.raises(ValueError, match="target: expected a floating-point tensor"):
         normal_angles(n, n.long(), mask)
+
+
+def test_normal_angles_are_exact_near_zero():
+    """acos of a float32 cosine reads up to 0.02 degrees for identical normals; atan2 reads 0."""
+    n = torch.nn.functional.normalize(torch.randn(2, 3, 16, 16, generator=torch.Generator().manual_seed(0)), dim=1)
+    mask = torch.ones(2, 1, 16, 16, dtype=torch.bool)
+    assert float(normal_angles(n, n, mask).max()) < 1e-4
+    flipped = normal_angles(n, -n, mask)
+    assert float((flipped - 180.0).abs().max()) < 1e-4
+    r = torch.tensor([0.0, 0.0, -1.0]).view(1, 3, 1, 1).expand(2, 3, 16, 16)
+    tilted = torch.stack([torch.full((2, 16, 16), math.sin(0.01)), torch.zeros(2, 16, 16),
+                          torch.full((2, 16, 16), -math.cos(0.01))], 1)
+    assert_close = torch.testing.assert_close
+    assert_close(normal_angles(tilted, r, mask), torch.full((512,), math.degrees(0.01)), rtol=1e-4, atol=1e-5)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_shape, check_tensor
 
 __all__ = ["PhotoAugmentation"]
 
@@ -56,6 +56,7 @@ class PhotoAugmentation(nn.Module):
         self.blur = K.RandomGaussianBlur((kernel, kernel), blur_sigma, p=blur_probability)
 
     def forward(self, images: Tensor) -> Tensor:
+        check_tensor(images, "images")
         single = images.dim() == 3
         batch = images[None] if single else images
         check_shape(batch, ["B", 3, "H", "W"], "images")

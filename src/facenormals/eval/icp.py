@@ -19,12 +19,13 @@ so directions the surface does not constrain (rotation about a sphere's centre) 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from numbers import Real
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_integer, check_nonnegative, check_shape
 
 __all__ = ["ICPResult", "icp_point_to_plane"]
 
@@ -142,11 +143,10 @@ def icp_point_to_plane(
         check_finite(x, name)
     if direction not in _DIRECTIONS:
         raise ValueError(f"direction: expected one of {_DIRECTIONS}, got {direction!r}")
-    if not isinstance(max_iterations, int) or max_iterations < 0:
-        raise ValueError(f"max_iterations: expected a non-negative integer, got {max_iterations!r}")
-    if not tolerance >= 0:
-        raise ValueError(f"tolerance: expected a non-negative number, got {tolerance!r}")
-    if max_distance is not None and not max_distance > 0:
+    max_iterations = check_integer(max_iterations, "max_iterations", minimum=0)
+    tolerance = check_nonnegative(tolerance, "tolerance")
+    if max_distance is not None and (isinstance(max_distance, bool) or not isinstance(max_distance, Real)
+                                     or not max_distance > 0):
         raise ValueError(f"max_distance: expected a positive number or None, got {max_distance!r}")
     if dims["N"] == 0 or tdims["M"] == 0:
         raise ValueError("source_points, target_points: expected at least one point each")

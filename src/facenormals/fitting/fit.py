@@ -16,7 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_shape, check_tensor
+from facenormals.core.check import check_finite, check_floating, check_integer, check_shape, check_tensor
 from facenormals.fitting.pose import prealign_pose, require_pose_landmarks
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
@@ -200,9 +200,9 @@ def fit_head(
     import time
 
     start = time.perf_counter()
-    if rounds < 1 or iterations_per_round < 1 or visibility_rounds < 1:
-        raise ValueError("rounds, iterations_per_round, visibility_rounds: expected >= 1, got "
-                         f"{rounds}, {iterations_per_round}, {visibility_rounds}")
+    rounds = check_integer(rounds, "rounds", minimum=1)
+    iterations_per_round = check_integer(iterations_per_round, "iterations_per_round", minimum=1)
+    visibility_rounds = check_integer(visibility_rounds, "visibility_rounds", minimum=1)
     check_scale("robust_scale", robust_scale)
     check_scale("landmark_robust_scale", landmark_robust_scale)
     if isinstance(vertex_spacing, Sequence) and len(vertex_spacing) == 0:
@@ -211,8 +211,13 @@ def fit_head(
         raise ValueError(f"fit_expression: model {model.name!r} has no expression basis to fit")
     normal_maps = _as_views(normal_maps, "normal_maps", [3, "H", "W"])
     B, V, _, H, W = normal_maps.shape
+    if B < 1 or V < 1 or H < 1 or W < 1:
+        raise ValueError(f"normal_maps: expected at least one subject, one view and one pixel, got shape "
+                         f"{tuple(normal_maps.shape)}")
     views = {"B": B, "V": V}
     landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2], views)
+    check_floating(normal_maps, "normal_maps")  # an integer map would truncate the unit normals to 0
+    check_floating(landmarks, "landmarks")
     if not bool(torch.isfinite(normal_maps).all()):
         raise ValueError("normal_maps: expected finite values, got NaN or infinite entries")
     dtype, device = model.mean.dtype, model.mean.device
@@ -220,6 +225,7 @@ def fit_head(
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
     intrinsics = _as_views(intrinsics, "intrinsics", [3], views).to(dtype)
+    check_finite(intrinsics, "intrinsics")
     if not bool((intrinsics[..., 0] > 0).all()):
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[..., 0].min().item():g}")
     if landmark_mask is None:

@@ -14,7 +14,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape, check_tensor
 from facenormals.energy import landmark_residuals
 from facenormals.fitting.robust import cauchy_weights, check_scale
 from facenormals.geometry import (
@@ -82,6 +82,8 @@ def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: 
     dims = check_shape(points, ["B", "L", 3], "points")
     check_shape(x, ["B", 6], "x", dims)
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    check_floating(points, "points")
+    check_same_dtype_device(points, "points", x=x, intrinsics=intrinsics)
     if mask is not None:
         check_shape(mask, ["B", "L"], "mask", dims)
         if mask.dtype != torch.bool:
@@ -261,6 +263,9 @@ def prealign_pose(
     """
     dims = check_shape(landmarks, ["B", "L", 2], "landmarks")
     check_floating(landmarks, "landmarks")
+    if dims["B"] < 1:
+        raise ValueError(f"landmarks: expected at least one view, got shape {tuple(landmarks.shape)}")
+    check_tensor(model_points, "model_points")
     if model_points.dim() == 2:
         check_shape(model_points, [dims["L"], 3], "model_points")
         model_points = model_points.expand(dims["B"], -1, -1)

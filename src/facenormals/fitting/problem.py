@@ -36,7 +36,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_floating, check_shape
 from facenormals.energy import landmark_residuals, prior_residuals
 from facenormals.energy.residuals import _foreground as map_foreground
 from facenormals.fitting.rings import RingRows, Rings
@@ -139,6 +139,7 @@ class HeadFitProblem:
         vertex_subset: Tensor | None = None,
     ) -> None:
         dims = check_shape(normal_maps, ["B", "V", 3, "H", "W"], "normal_maps")
+        check_floating(normal_maps, "normal_maps")
         views = {"B": dims["B"], "V": dims["V"]}
         check_shape(landmarks, ["B", "V", model.landmark_indices.shape[0], 2], "landmarks", views)
         check_shape(landmark_mask, ["B", "V", model.landmark_indices.shape[0]], "landmark_mask", views)

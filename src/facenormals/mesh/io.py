@@ -8,10 +8,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_faces, check_shape
+from facenormals.core.check import check_faces, check_finite, check_shape
 from facenormals.core.files import atomic_write
 
 __all__ = ["load_mesh", "save_mesh"]
+
+#: The file suffixes :func:`save_mesh` writes (through trimesh).
+_MESH_FORMATS = ("ply", "obj", "off", "glb", "stl")
 
 
 def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
@@ -42,14 +45,19 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
         check_shape(vertices, [1, "N", 3], "vertices")
         vertices = vertices[0]
     check_shape(vertices, ["N", 3], "vertices")
+    check_finite(vertices, "vertices")  # load_mesh would refuse the file
     check_faces(faces, vertices.shape[0], "faces")
     path = Path(path)
+    suffix = path.suffix.lstrip(".").lower()
+    if suffix not in _MESH_FORMATS:
+        raise ValueError(f"{path}: expected a mesh file name ending in one of "
+                         f"{', '.join('.' + f for f in _MESH_FORMATS)}, got {path.suffix or 'no suffix'!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
     mesh = trimesh.Trimesh(
         vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy().astype(np.int64), process=False
     )
     with atomic_write(path) as part:
-        mesh.export(part, file_type=path.suffix.lstrip(".").lower())
+        mesh.export(part, file_type=suffix)
     return path
 
 

@@ -48,7 +48,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_floating, check_shape
+from facenormals.core.check import check_faces, check_floating, check_integer, check_shape
 
 __all__ = ["VertexNormals", "vertex_normals"]
 
@@ -183,6 +183,7 @@ class VertexNormals(nn.Module):
         check_shape(faces, ["F", 3], "faces")
         if num_vertices is None:
             num_vertices = int(faces.max()) + 1 if faces.numel() else 0
+        num_vertices = check_integer(num_vertices, "num_vertices", minimum=0)
         check_faces(faces, num_vertices)
         self.mode = _check_mode(mode)
         self.eps = eps

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_finite, check_floating, check_shape
+from facenormals.core.check import check_faces, check_finite, check_floating, check_integer, check_shape
 from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
@@ -110,7 +110,8 @@ class MorphableModel(nn.Module):
         check_finite(expression_basis, "expression_basis")
         landmarks = dict(landmarks or {})
         for key, index in landmarks.items():
-            if not 0 <= int(index) < num_vertices:
+            index = landmarks[key] = check_integer(index, f"landmarks[{key!r}]")  # int() would truncate 2.7
+            if not 0 <= index < num_vertices:
                 raise ValueError(f"landmarks: index {index} of {key!r} is outside [0, {num_vertices})")
         names = list(expression_names) if expression_names is not None else []
         if names and len(names) != expression_basis.shape[0]:

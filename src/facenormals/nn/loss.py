@@ -81,6 +81,8 @@ def normal_landmark_loss(
     check_shape(output.foreground_logits, ["B", 1, "H", "W"], "output.foreground_logits", dims)
     check_shape(normals_gt, ["B", 3, "H", "W"], "normals_gt", dims)
     check_shape(landmarks_gt, ["B", "L", "H", "W"], "landmarks_gt", dims)
+    if dims["B"] * dims["H"] * dims["W"] == 0:  # the mean of an empty batch is NaN
+        raise ValueError(f"output.normals: expected at least one image and pixel, got shape {tuple(output.normals.shape)}")
     for name, x in (
         ("output.normals", output.normals),
         ("output.landmarks", output.landmarks),

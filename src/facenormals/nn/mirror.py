@@ -10,6 +10,7 @@ the average of the two is better than either (the shipped network: landmarks ~12
 
 from __future__ import annotations
 
+import operator
 from typing import Sequence
 
 import torch
@@ -61,10 +62,14 @@ def mirror_output(output: UNetOutput, permutation: Sequence[int]) -> UNetOutput:
     dims = check_shape(output.normals, ["B", 3, "H", "W"], "output.normals")
     check_shape(output.landmarks, ["B", len(permutation), "H", "W"], "output.landmarks", dims)
     check_shape(output.foreground_logits, ["B", 1, "H", "W"], "output.foreground_logits", dims)
-    if sorted(int(i) for i in permutation) != list(range(len(permutation))):
+    try:  # integers only: int() would truncate 1.5 to a valid index
+        order = [operator.index(i) for i in permutation]
+    except TypeError:
+        order = None
+    if order is None or sorted(order) != list(range(len(order))):
         raise ValueError(f"permutation: expected a permutation of 0..{len(permutation) - 1}, got {list(permutation)}")
     sign = torch.tensor([-1.0, 1.0, 1.0], dtype=output.normals.dtype, device=output.normals.device).view(1, 3, 1, 1)
-    index = torch.as_tensor(list(permutation), device=output.landmarks.device)
+    index = torch.as_tensor(order, device=output.landmarks.device)
     return UNetOutput(output.normals.flip(-1) * sign, output.landmarks.flip(-1).index_select(1, index),
                       output.foreground_logits.flip(-1))
 

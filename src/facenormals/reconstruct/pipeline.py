@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
 from facenormals.core.files import publish, temporary_beside
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks, fit_head
@@ -233,7 +233,7 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
     check_shape(maps.found, ["V", "C"], "maps.found", dims)
     V, S = dims["V"], dims["S"]
     require_pose_landmarks(model)
-    if not (math.isfinite(focal) and focal > 0):
+    if not check_nonnegative(focal, "focal") > 0:
         raise ValueError(f"focal: expected a positive focal length in pixels, got {focal}")
     channels = landmark_channels(model)
     if max(channels) >= dims["C"]:

@@ -71,6 +71,7 @@ def draw_alignment(
     if landmark_pixels is not None:
         check_shape(landmark_pixels, ["L", 2], "landmark_pixels")
     scale = check_integer(scale, "scale", minimum=1)
+    max_points = check_integer(max_points, "max_points", minimum=1)
     img = np.asarray(image)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_real, check_shape
 from facenormals.render.normal_map import render_normal_map
 
 __all__ = ["shade_normal_map", "render_shaded"]
@@ -30,10 +30,13 @@ def shade_normal_map(normal_map: Tensor, light: tuple[float, float, float] = (0.
     """
     check_shape(normal_map, ["B", 3, "H", "W"], "normal_map")
     check_floating(normal_map, "normal_map")
-    direction = torch.as_tensor(light, dtype=torch.float64).reshape(-1)
+    try:
+        direction = torch.as_tensor(light, dtype=torch.float64).reshape(-1)
+    except (TypeError, ValueError, RuntimeError):
+        direction = torch.zeros(0, dtype=torch.float64)
     if direction.shape != (3,) or not bool(torch.isfinite(direction).all()) or float(direction.norm()) == 0.0:
-        raise ValueError(f"light: expected a non-zero finite direction (x, y, z), got {light}")
-    if not 0.0 <= float(ambient) <= 1.0:
+        raise ValueError(f"light: expected a non-zero finite direction (x, y, z), got {light!r}")
+    if not 0.0 <= check_real(ambient, "ambient") <= 1.0:
         raise ValueError(f"ambient: expected a value in [0, 1], got {ambient}")
     direction = (direction / direction.norm()).to(dtype=normal_map.dtype, device=normal_map.device)
     lambert = (normal_map * direction[None, :, None, None]).sum(1, keepdim=True).clamp(min=0.0)
