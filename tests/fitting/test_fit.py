@@ -219,3 +219,18 @@ def test_visibility_is_recomputed_in_the_first_rounds_and_for_new_subsets(model,
                       visibility_rounds=visibility_rounds)
     assert len(calls) == expected
     assert result.visible.shape == (1, 1, model.num_vertices) and result.visible.any()
+
+
+def test_landmark_count_errors_explain_the_order(model, head):
+    """Landmarks follow model.landmark_names; a model without named landmarks says so before any shape check."""
+    from facenormals.models import MorphableModel
+
+    obs = render_oracle_views(model, head, [0.0], image_size=32)
+    face_only = model.with_annotations({name: model.landmarks[name] for name in model.landmark_names[:18]})
+    with pytest.raises(ValueError, match=r"got \(1, 1, 24, 2\); landmarks follow model.landmark_names \(model 'builtin' "
+                                         r"names 18\); the network's channels map onto them with "
+                                         r"facenormals.reconstruct.landmark_channels\(model\)"):
+        fit_head(obs.normal_maps, obs.landmarks, face_only)
+    bare = MorphableModel(model.mean, model.shape_basis, model.faces, shape_std=model.shape_std)
+    with pytest.raises(ValueError, match="has 0 named landmarks; at least 4 are needed"):
+        fit_head(obs.normal_maps, obs.landmarks, bare)

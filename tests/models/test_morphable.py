@@ -215,3 +215,40 @@ def test_landmark_indices_must_be_integers():
     """int() would truncate 2.7 to vertex 2."""
     with pytest.raises(ValueError, match=r"landmarks\['a'\]: expected an integer, got float 2.7"):
         MorphableModel(torch.zeros(5, 3), torch.zeros(3, 5, 3), torch.tensor([[0, 1, 2]]), landmarks={"a": 2.7})
+
+
+def test_a_model_in_metres_is_refused_where_millimetres_matter():
+    """The fit, the landmark z-buffer and the generator work in mm: a model in metres would be fitted
+    with every mm constant 1000x off and its errors printed as mm."""
+    from facenormals.fitting import fit_head, hidden_landmarks
+    from facenormals.models import builtin_head_model
+
+    head = builtin_head_model()
+    head.check_millimetres()
+    metres = MorphableModel(head.mean / 1000, head.shape_basis / 1000, head.faces, shape_std=head.shape_std,
+                            landmarks=head.landmarks, name="metres")
+    match = r"model 'metres': its mean spans 0.367 units across, not the 50-5000 of a face or head in millimetres"
+    with pytest.raises(ValueError, match=match):
+        metres.check_millimetres()
+    with pytest.raises(ValueError, match=match):
+        fit_head(torch.zeros(1, 3, 32, 32), torch.zeros(1, 24, 2), metres)
+    with pytest.raises(ValueError, match=match):
+        hidden_landmarks(metres, torch.eye(3)[None], torch.tensor([[0.0, 0.0, 0.6]]),
+                         torch.tensor([[300.0, 63.5, 63.5]]), (128, 128))
+    with pytest.raises(ValueError, match="units across"):
+        MorphableModel(head.mean * 1000, head.shape_basis, head.faces).check_millimetres()  # micrometres
+
+
+def test_with_annotations_warns_about_names_the_network_does_not_know():
+    from facenormals.models import builtin_head_model
+
+    head = builtin_head_model()
+    bare = MorphableModel(head.mean, head.shape_basis, head.faces, shape_std=head.shape_std)
+    marks = dict(head.landmarks)
+    marks["nose-tip"] = marks.pop("nose_tip")
+    with pytest.warns(UserWarning) as record:
+        model = bare.with_annotations(marks)
+    messages = " | ".join(str(w.message) for w in record)
+    assert "['nose-tip'] are not among the network's LANDMARK_NAMES" in messages
+    assert "no 'nose_tip', so the face region scored by evaluation stays the model's own (10242 of 10242" in messages
+    assert bool(model.face_region.all())

@@ -378,6 +378,26 @@ def test_the_example_photo_with_the_builtin_head_stays_frontal():
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 1]))) < 25.0
 
 
+def test_a_model_the_pipeline_cannot_use_fails_before_the_network(monkeypatch):
+    """Metres, too few named landmarks or unknown names: refused before the weights load."""
+    from pathlib import Path
+
+    from facenormals.models import MorphableModel
+    from facenormals.reconstruct import photos
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("the network was loaded")
+
+    monkeypatch.setattr("facenormals.nn.load_weights", no_network)
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    head = builtin_head_model()
+    metres = MorphableModel(head.mean / 1000, head.shape_basis / 1000, head.faces, landmarks=head.landmarks)
+    bare = MorphableModel(head.mean, head.shape_basis, head.faces)
+    for model, match in ((metres, "units across"), (bare, "has 0 named landmarks")):
+        with pytest.raises(ValueError, match=match):
+            photos.reconstruct_photos([photo], None, model=model, log=lambda message: None)
+
+
 def test_bad_device_names_the_argument(tmp_path):
     from facenormals.reconstruct import reconstruct_photos
 

@@ -257,6 +257,7 @@ class SyntheticHeadGenerator:
             self.model = model
         else:
             self.model = load_model(model)
+        self.model.check_millimetres()  # the scene (camera distance, hair, eyeballs) is built in mm
         self.config = config if config is not None else SynthConfig()
         if not isinstance(self.config, SynthConfig):
             raise ValueError(f"config: expected a SynthConfig, got {type(self.config).__name__}")

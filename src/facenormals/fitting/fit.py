@@ -209,13 +209,21 @@ def fit_head(
         raise ValueError("vertex_spacing: expected a spacing, a non-empty sequence of spacings or None, got []")
     if fit_expression and model.num_expressions == 0:
         raise ValueError(f"fit_expression: model {model.name!r} has no expression basis to fit")
+    model.check_millimetres()
+    if initial_pose is None:
+        require_pose_landmarks(model)  # before the landmarks' shape, which names the model's count
     normal_maps = _as_views(normal_maps, "normal_maps", [3, "H", "W"])
     B, V, _, H, W = normal_maps.shape
     if B < 1 or V < 1 or H < 1 or W < 1:
         raise ValueError(f"normal_maps: expected at least one subject, one view and one pixel, got shape "
                          f"{tuple(normal_maps.shape)}")
     views = {"B": B, "V": V}
-    landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2], views)
+    try:
+        landmarks = _as_views(landmarks, "landmarks", [model.landmark_indices.shape[0], 2], views)
+    except ValueError as error:
+        raise ValueError(f"{error}; landmarks follow model.landmark_names (model {model.name!r} names "
+                         f"{model.landmark_indices.shape[0]}); the network's channels map onto them with "
+                         "facenormals.reconstruct.landmark_channels(model)") from None
     check_floating(normal_maps, "normal_maps")  # an integer map would truncate the unit normals to 0
     check_floating(landmarks, "landmarks")
     if not bool(torch.isfinite(normal_maps).all()):
@@ -239,7 +247,6 @@ def fit_head(
 
     # 1. Pre-alignment: the mean head's landmarks, per view.
     if initial_pose is None:
-        require_pose_landmarks(model)
         flat_mask = landmark_mask.reshape(B * V, -1)
         for index, count in enumerate(flat_mask.sum(1).tolist()):
             if count < 4:

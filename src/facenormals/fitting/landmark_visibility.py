@@ -76,6 +76,7 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
         check_floating(x, name)
         check_finite(x, name)  # NaN would silently read as "every landmark hidden"
     height, width = check_image_size(image_size)
+    model.check_millimetres()  # the tolerance is in mm
     dtype, device = model.mean.dtype, model.mean.device
     coeffs = shape if shape is not None else torch.zeros(dims["B"], model.num_shape, dtype=dtype, device=device)
     vertices = model(coeffs.to(device=device, dtype=dtype))

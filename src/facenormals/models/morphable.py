@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -241,6 +242,33 @@ class MorphableModel(nn.Module):
             vertices = self(shape_coeffs.reshape(1, -1).to(self.mean))[0]
         save_mesh(path, vertices, self.faces)
 
+    def check_millimetres(self) -> None:
+        """Raise ``ValueError`` unless the mean head has the size of a face or head in millimetres.
+
+        Every length in facenormals is in mm (docs/conventions.md): depth slacks, the 95 mm face
+        region, ICP cut-offs, reported errors. A model in metres (or centimetres) would be accepted
+        by the maths and give wrong results labelled mm, so the fit, the landmark z-buffer and the
+        synthetic-data generator call this first. The test is the diagonal of the mean's bounding
+        box: 50 to 5,000 units passes (a face crop spans about 200 mm, a head with neck about 400).
+
+        Example:
+            >>> from facenormals.models import builtin_head_model
+            >>> head = builtin_head_model()
+            >>> head.check_millimetres()
+            >>> MorphableModel(head.mean / 1000, head.shape_basis / 1000, head.faces, name="m").check_millimetres()
+            Traceback (most recent call last):
+            ...
+            ValueError: model 'm': its mean spans 0.367 units across, not the 50-5000 of a face or head in millimetres; facenormals works in mm (a model in metres needs its mean and bases times 1000, docs/models.md)
+        """
+        mean = self.mean.detach()
+        span = float((mean.amax(0) - mean.amin(0)).norm()) if mean.numel() else 0.0
+        if not 50.0 <= span <= 5000.0:
+            raise ValueError(
+                f"model {self.name!r}: its mean spans {span:.3g} units across, not the 50-5000 of a face or head in "
+                "millimetres; facenormals works in mm (a model in metres needs its mean and bases times 1000, "
+                "docs/models.md)"
+            )
+
     def with_annotations(self, landmarks: Mapping[str, int], face_region: Tensor | None = None,
                          radius: float = FACE_CROP_RADIUS_MM) -> "MorphableModel":
         """A copy with named landmarks (and a face region) attached: what a model brought from LYHM,
@@ -265,7 +293,17 @@ class MorphableModel(nn.Module):
         """
         from facenormals.mesh import vertex_normals
 
+        from facenormals.models.landmarks import LANDMARK_NAMES
+
         landmarks = dict(landmarks)
+        unknown = [name for name in landmarks if name not in LANDMARK_NAMES]
+        if unknown:  # a typo would silently never be detected, or change the face region
+            warnings.warn(f"landmarks: {unknown} are not among the network's LANDMARK_NAMES: the network never "
+                          "detects them (they still work with landmarks you pass to fit_head yourself)", stacklevel=2)
+        if face_region is None and "nose_tip" not in landmarks:
+            warnings.warn("landmarks: no 'nose_tip', so the face region scored by evaluation stays the model's own "
+                          f"({int(self.face_region.sum())} of {self.num_vertices} vertices); pass face_region or "
+                          "name the nose tip", stacklevel=2)
         if face_region is None and "nose_tip" in landmarks:
             mean = self.mean.double()
             near = (mean - mean[int(landmarks["nose_tip"])]).norm(dim=-1) < radius

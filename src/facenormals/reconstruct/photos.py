@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 import torch
 
+from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
 from facenormals.reconstruct.pipeline import (NetworkMaps, PhotoView, Reconstruction, landmark_channels, predict_maps,
@@ -152,6 +153,9 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
                 "(`facenormals models fetch ict` gets the full model)")
     if model.mean.dtype != torch.float32:  # the fit runs in float32; a caller's model stays as it is
         model = copy.deepcopy(model).to(torch.float32)
+    model.check_millimetres()  # before the network runs: mm units, enough named landmarks, known names
+    require_pose_landmarks(model)
+    landmark_channels(model)
     net = load_weights(weights, device=device)
     timings["load"] = time.perf_counter() - t
     log(f"model {model.name} ({model.num_vertices} vertices, {model.num_shape} shape components); "
