@@ -154,6 +154,21 @@ def test_output_paths_are_checked_before_any_work(tmp_path, capsys):
         assert status == 1 and "--json: " in err and message in err, err
 
 
+def test_reconstruct_checks_its_output_folder_before_reading_the_photos(tmp_path, capsys, monkeypatch):
+    from facenormals import reconstruct
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the photos were processed")
+
+    monkeypatch.setattr(reconstruct, "reconstruct_photos", no_work)
+    (tmp_path / "afile").write_text("x")
+    for out, message in ((tmp_path / "afile" / "sub", "is a file, not a folder"), (tmp_path / "afile", "is not a folder"),
+                         ("", "expected a folder name, got an empty string")):
+        status = main(["reconstruct", str(tmp_path / "a.jpg"), "-o", str(out)])
+        err = capsys.readouterr().err
+        assert status == 1 and "-o/--out: " in err and message in err, err
+
+
 def test_prediction_landmarks_must_be_integer_indices(tmp_path, capsys):
     model = builtin_head_model()
     model.export_mesh(tmp_path / "ref.ply")
@@ -163,3 +178,10 @@ def test_prediction_landmarks_must_be_integer_indices(tmp_path, capsys):
         status = main(["evaluate", str(tmp_path / "pred.ply"), str(tmp_path / "ref.ply"), "--model", "builtin",
                        "--prediction-landmarks", str(tmp_path / "lm.json")])
         assert status == 1 and "non-integer vertex indices" in capsys.readouterr().err
+
+
+def test_json_report_writes_null_not_nan():
+    from facenormals.cli import _json_safe
+
+    out = json.dumps(_json_safe({"a": float("nan"), "b": [1.0, float("inf")], "c": {"d": 2.5}}), allow_nan=False)
+    assert json.loads(out) == {"a": None, "b": [1.0, None], "c": {"d": 2.5}}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -138,9 +139,20 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(args.json) as part:
-            part.write_text(json.dumps(report.as_dict(), indent=2))
+            part.write_text(json.dumps(_json_safe(report.as_dict()), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
     return 0
+
+
+def _json_safe(value):
+    """NaN and infinities as ``null``: ``json.dumps`` would write ``NaN`` tokens, which are not JSON."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -228,6 +240,9 @@ def _parse_box(text: str) -> tuple[float, float, float, float]:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from facenormals.reconstruct import reconstruct_photos
 
+    if not args.out:  # e.g. an unset $OUTDIR: the files would land in the current folder
+        raise ValueError("-o/--out: expected a folder name, got an empty string")
+    _check_writable(Path(args.out), "-o/--out", folder=True)  # before the photos are read and fitted
     boxes = list(args.box or [])
     if boxes and len(boxes) != len(args.images):
         raise ValueError(f"--box: give one per image ({len(args.images)}) or none, got {len(boxes)}")

@@ -124,6 +124,7 @@ def test_load_errors_name_the_file(tmp_path):
         (dict(shape_std=torch.ones(4)), r"shape_std: expected shape \(K,\) with K=3"),
         (dict(shape_std=torch.tensor([1.0, 0.0, 1.0])), "shape_std: expected positive"),
         (dict(landmarks={"x": 9}), "landmarks: index 9"),
+        (dict(faces=torch.zeros(0, 3, dtype=torch.long)), r"faces: expected at least one triangle, got shape \(0, 3\)"),
     ],
 )
 def test_constructor_errors(kwargs, match):

@@ -69,3 +69,22 @@ def test_a_header_claiming_too_many_pixels_names_the_file(tmp_path):
     path.write_bytes(png)
     with pytest.raises(ImageReadError, match=r"huge.png: (cannot be decoded|not an image)"):
         read_image(path)
+
+
+def test_corrupt_jpeg_data_is_an_error_not_garbage_pixels(tmp_path):
+    """OpenCV decodes corrupt entropy-coded JPEG data without an error (libjpeg only prints a warning)."""
+    import cv2
+
+    image = np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8)
+    ok, encoded = cv2.imencode(".jpg", image)
+    data = bytearray(encoded.tobytes())
+    good = tmp_path / "good.jpg"
+    good.write_bytes(bytes(data))
+    assert read_image(good).shape == (64, 64, 3)
+    start = int(len(data) * 0.85)
+    data[start:-2] = bytes(255 - b for b in data[start:-2])  # damage the scan, keep the end marker
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(bytes(data))
+    assert cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None  # OpenCV accepts it
+    with pytest.raises(ImageReadError, match="bad.jpg: corrupt JPEG data"):
+        read_image(bad)

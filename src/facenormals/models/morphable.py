@@ -93,7 +93,8 @@ class MorphableModel(nn.Module):
         check_shape(shape_basis, ["K", "N", 3], "shape_basis", dims)
         check_floating(shape_basis, "shape_basis")
         num_vertices = dims["N"]
-        check_faces(faces, num_vertices)
+        if check_faces(faces, num_vertices)["F"] == 0:  # no surface: empty normal maps, a landmarks-only fit
+            raise ValueError(f"faces: expected at least one triangle, got shape {tuple(faces.shape)}")
         check_finite(mean, "mean")
         check_finite(shape_basis, "shape_basis")
         dtype = mean.dtype

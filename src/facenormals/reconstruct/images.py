@@ -46,4 +46,21 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageReadError(f"{path}: cannot be decoded ({str(error).strip().splitlines()[-1]})") from None
     if image is None:
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
+    if data[:3].tobytes() == b"\xff\xd8\xff":
+        _check_jpeg_stream(path, data)
     return np.ascontiguousarray(image[:, :, ::-1])
+
+
+def _check_jpeg_stream(path: Path, data: np.ndarray) -> None:
+    """OpenCV decodes a JPEG with corrupt entropy-coded data as best it can (libjpeg only prints
+    "Corrupt JPEG data" to stderr) and returns garbage pixels without an error; Pillow's decoder
+    refuses the same stream, so it checks the file once more."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data.tobytes())) as image:
+            image.load()
+    except (OSError, SyntaxError, ValueError) as error:
+        raise ImageReadError(f"{path}: corrupt JPEG data ({error})") from None
