@@ -226,8 +226,7 @@ def fit_head(
                          "facenormals.reconstruct.landmark_channels(model)") from None
     check_floating(normal_maps, "normal_maps")  # an integer map would truncate the unit normals to 0
     check_floating(landmarks, "landmarks")
-    if not bool(torch.isfinite(normal_maps).all()):
-        raise ValueError("normal_maps: expected finite values, got NaN or infinite entries")
+    check_finite(normal_maps, "normal_maps")
     dtype, device = model.mean.dtype, model.mean.device
     normal_maps, landmarks = normal_maps.to(dtype), landmarks.to(dtype)
     if intrinsics is None:

@@ -261,8 +261,8 @@ class MorphableModel(nn.Module):
             ...
             ValueError: model 'm': its mean spans 0.367 units across, not the 50-5000 of a face or head in millimetres; facenormals works in mm (a model in metres needs its mean and bases times 1000, docs/models.md)
         """
-        mean = self.mean.detach()
-        span = float((mean.amax(0) - mean.amin(0)).norm()) if mean.numel() else 0.0
+        mean = self.mean.detach()  # never empty: a model has at least one triangle
+        span = float((mean.amax(0) - mean.amin(0)).norm())
         if not 50.0 <= span <= 5000.0:
             raise ValueError(
                 f"model {self.name!r}: its mean spans {span:.3g} units across, not the 50-5000 of a face or head in "
@@ -293,7 +293,6 @@ class MorphableModel(nn.Module):
             (24, True)
         """
         from facenormals.mesh import vertex_normals
-
         from facenormals.models.landmarks import LANDMARK_NAMES
 
         landmarks = dict(landmarks)
@@ -305,7 +304,7 @@ class MorphableModel(nn.Module):
             warnings.warn("landmarks: no 'nose_tip', so the face region scored by evaluation stays the model's own "
                           f"({int(self.face_region.sum())} of {self.num_vertices} vertices); pass face_region or "
                           "name the nose tip", stacklevel=2)
-        if face_region is None and "nose_tip" in landmarks:
+        elif face_region is None:
             mean = self.mean.double()
             near = (mean - mean[int(landmarks["nose_tip"])]).norm(dim=-1) < radius
             facing = vertex_normals(mean[None], self.faces)[0, :, 2] < 0
