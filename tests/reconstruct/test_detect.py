@@ -71,6 +71,24 @@ def test_crop_square_matches_a_naive_bilinear_loop():
             assert np.abs(out[v, u].astype(float) - ref).max() <= 1.0
 
 
+@pytest.mark.parametrize("box", [(40.0, 30.0, 64.0), (-20.5, -13.2, 90.0), (70.3, 55.8, 80.0),
+                                 (-200.0, 10.0, 100.0), (-50.0, -40.0, 300.0), (130.0, 90.0, 40.0)])
+def test_crop_square_downsampling_equals_blurring_the_whole_photo(box):
+    # crop_square blurs only the region it samples; the pixels must be those of blurring everything
+    rng = np.random.default_rng(2)
+    img = rng.integers(0, 255, (120, 150, 3)).astype(np.uint8)
+    size = 16
+    s = box[2] / size
+    blurred = cv2.GaussianBlur(img, (0, 0), 0.5 * np.sqrt(s * s - 1.0))
+    matrix = np.array([[s, 0.0, box[0] + 0.5 * s - 0.5], [0.0, s, box[1] + 0.5 * s - 0.5]])
+    ref = cv2.warpAffine(blurred, matrix, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REPLICATE)
+    # equal up to one grey level: warpAffine rounds source positions to 1/32 px, and the region's
+    # integer offset can tip a rounding of the fractional position
+    diff = np.abs(crop_square(img, box, size).astype(int) - ref.astype(int))
+    assert diff.max() <= 1 and (diff > 0).mean() < 0.02
+
+
 def test_crop_square_maps_a_dot_to_the_documented_pixel():
     img = np.zeros((400, 400, 3), np.uint8)
     img[200:204, 120:124] = 255  # a 4x4 block centred on (121.5, 201.5)

