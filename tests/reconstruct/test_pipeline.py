@@ -465,3 +465,21 @@ def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
     maps.landmarks[:] = float("nan")
     with pytest.raises(ValueError, match="too few"):
         reconstruct_views(crops, net, builtin_head_model(), maps=maps)
+
+
+def test_the_same_photo_twice_is_reported(tmp_path):
+    import shutil
+    from pathlib import Path
+
+    from facenormals.reconstruct import reconstruct_photos
+
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    copy = shutil.copy(photo, tmp_path / "copy.jpg")
+    messages = []
+    rec = reconstruct_photos([photo, copy], None, model="builtin", log=messages.append, rounds=1, iterations_per_round=2)
+    assert rec.fit.vertices.shape[0] == 1
+    warnings = [m for m in messages if m.startswith("warning:")]
+    assert len(warnings) == 1 and "copy.jpg shows the same head crop as" in warnings[0]
+    messages.clear()
+    reconstruct_photos([photo], None, model="builtin", log=messages.append, rounds=1, iterations_per_round=2)
+    assert not [m for m in messages if m.startswith("warning:")]

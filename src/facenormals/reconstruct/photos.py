@@ -143,6 +143,12 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         log(f"[{i + 1}/{len(paths)}] {path}: {view.image_size[1]}x{view.image_size[0]}, head crop "
             f"{view.box[2]:.0f} px at ({view.box[0]:.0f}, {view.box[1]:.0f})")
     timings["read_and_detect"] = time.perf_counter() - start
+    for i, view in enumerate(views):  # the same photo twice (a path repeated, or a copy) adds no viewpoint
+        twin = next((j for j in range(i) if views[j].crop.shape == view.crop.shape
+                     and np.array_equal(views[j].crop, view.crop)), None)
+        if twin is not None:
+            log(f"warning: {paths[i]} shows the same head crop as {paths[twin]}: the same photo counts twice in "
+                "the multi-view fit, which then weighs that view double and adds no other viewpoint")
 
     t = time.perf_counter()
     if not isinstance(model, MorphableModel):
