@@ -25,6 +25,8 @@ def test_model_export(tmp_path):
 def test_errors_name_the_file(tmp_path):
     with pytest.raises(ValueError, match="missing.ply: mesh file not found"):
         load_mesh(tmp_path / "missing.ply")
+    with pytest.raises(ValueError, match="is a folder, expected a mesh file"):
+        load_mesh(tmp_path)
     bad = tmp_path / "bad.ply"
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n\x00\x01")
     with pytest.raises(ValueError, match="bad.ply"):

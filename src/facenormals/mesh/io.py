@@ -102,6 +102,8 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise ValueError(f"dtype: expected a floating torch.dtype for the vertices, got {dtype!r}")
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder, expected a mesh file")
     if not path.is_file():
         raise ValueError(f"{path}: mesh file not found")
     try:
