@@ -51,6 +51,22 @@ def test_closest_point_on_triangle_regions():
     np.testing.assert_allclose(degenerate, a)
 
 
+def test_collinear_and_repeated_corner_triangles_give_the_closest_point_of_their_edges():
+    rng = np.random.default_rng(0)
+    k = 2000
+    a, b = rng.normal(size=(k, 3)), rng.normal(size=(k, 3))
+    c = a + (b - a) * rng.uniform(-1, 2, size=(k, 1))  # on the line through a and b
+    c[:200] = a[:200]  # a repeated corner
+    p = rng.normal(size=(k, 3)) * 2
+    got = closest_points_on_triangles(p, a, b, c)
+    for i in range(0, k, 7):  # naive: the best of the three segments, densely sampled
+        t = np.linspace(0.0, 1.0, 2001)[:, None]
+        samples = np.concatenate([a[i] + t * (b[i] - a[i]), b[i] + t * (c[i] - b[i]), c[i] + t * (a[i] - c[i])])
+        best = np.sqrt(((samples - p[i]) ** 2).sum(1).min())
+        assert np.linalg.norm(got[i] - p[i]) <= best + 1e-9
+        assert np.linalg.norm(got[i] - p[i]) >= best - 1e-2  # the sampling step's slack
+
+
 def test_closest_points_on_mesh_matches_brute_force():
     rng = np.random.default_rng(0)
     vertices, faces = sphere(40.0, subdivisions=2)

@@ -46,7 +46,8 @@ def _check_query(points: object, vertices: object, faces: object) -> tuple[np.nd
 def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Closest point to ``p[i]`` on triangle ``(a[i], b[i], c[i])`` (all ``(K, 3)``), Ericson §5.1.5.
 
-    Degenerate triangles fall back to their closest corner.
+    Degenerate triangles (collinear or coincident corners, zero area) are treated as the union of
+    their three edges: the closest point of the three segments.
 
     Example:
         >>> tri = [np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])]
@@ -84,12 +85,25 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: 
         out = np.where(region[:, None], b, out)
         region = (d1 <= 0) & (d2 <= 0)
         out = np.where(region[:, None], a, out)
-    bad = ~np.isfinite(out).all(axis=1)
-    if bad.any():
-        corners = np.stack([a[bad], b[bad], c[bad]], axis=1)
-        nearest = np.argmin(((corners - p[bad, None]) ** 2).sum(-1), axis=1)
-        out[bad] = corners[np.arange(len(nearest)), nearest]
+    # Zero area (relative to the edge lengths) or a non-finite result: Ericson's regions assume a
+    # proper triangle and can pick a wrong edge, so take the best point of the three edges.
+    area2 = np.square(np.cross(ab, ac)).sum(1)
+    flat = (area2 <= 1e-24 * dot(ab, ab) * dot(ac, ac)) | ~np.isfinite(out).all(axis=1)
+    if flat.any():
+        pf, af, bf, cf = p[flat], a[flat], b[flat], c[flat]
+        candidates = np.stack([_closest_on_segments(pf, af, bf), _closest_on_segments(pf, bf, cf),
+                               _closest_on_segments(pf, cf, af)], axis=1)
+        best = np.argmin(((candidates - pf[:, None]) ** 2).sum(-1), axis=1)
+        out[flat] = candidates[np.arange(len(best)), best]
     return out
+
+
+def _closest_on_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Closest point to ``p[i]`` on the segment ``a[i]b[i]`` (a point where ``a[i] == b[i]``)."""
+    ab = b - a
+    length2 = np.einsum("ij,ij->i", ab, ab)
+    t = np.einsum("ij,ij->i", p - a, ab) / np.where(length2 > 0, length2, 1.0)
+    return a + ab * np.clip(t, 0.0, 1.0)[:, None]
 
 
 def _best_per_query(query: np.ndarray, dist2: np.ndarray, num_queries: int) -> np.ndarray:
