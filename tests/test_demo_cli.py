@@ -1,6 +1,7 @@
 import json
 
 import pytest
+import torch
 
 from facenormals.cli import main
 from facenormals.demo import run_demo
@@ -185,3 +186,20 @@ def test_json_report_writes_null_not_nan():
 
     out = json.dumps(_json_safe({"a": float("nan"), "b": [1.0, float("inf")], "c": {"d": 2.5}}), allow_nan=False)
     assert json.loads(out) == {"a": None, "b": [1.0, None], "c": {"d": 2.5}}
+
+
+def test_evaluate_needs_landmarks_for_a_prediction_with_other_triangles(tmp_path, capsys):
+    model = builtin_head_model()
+    ref, pred = tmp_path / "ref.ply", tmp_path / "pred.ply"
+    model.export_mesh(ref)
+    order = torch.randperm(model.num_vertices, generator=torch.Generator().manual_seed(0))
+    from facenormals.mesh import save_mesh
+
+    save_mesh(pred, model.mean[order], torch.argsort(order)[model.faces])  # same surface, another vertex order
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin"]) == 1
+    assert "has the model's vertex count but other triangles" in capsys.readouterr().err
+    landmarks = tmp_path / "lm.json"
+    landmarks.write_text(json.dumps({k: int(torch.argsort(order)[v]) for k, v in model.landmarks.items()}))
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(landmarks)]) == 0
+    out = capsys.readouterr().out
+    assert "warning" not in out and "ICP converged" in out

@@ -93,6 +93,8 @@ def _cmd_models(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
+    import torch
+
     from facenormals.eval import evaluate_reconstruction
     from facenormals.mesh import load_mesh
     from facenormals.models import load_model
@@ -121,19 +123,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if outside:
             raise ValueError(f"{args.prediction_landmarks}: expected vertex indices in [0, {pred_v.shape[0]}) of "
                              f"{args.prediction}, got {outside}")
-    elif pred_v.shape[0] == model.num_vertices:
+    elif pred_v.shape[0] == model.num_vertices and torch.equal(pred_f, model.faces.to(pred_f.dtype)):
         pred_landmarks = model.landmarks
     else:
+        what = (f"has {pred_v.shape[0]} vertices, not the model's {model.num_vertices}" if pred_v.shape[0] !=
+                model.num_vertices else "has the model's vertex count but other triangles (another vertex order or winding?)")
         raise ValueError(
-            f"{args.prediction}: has {pred_v.shape[0]} vertices, not the model's {model.num_vertices}; "
-            "pass --prediction-landmarks JSON (landmark name -> vertex index) for the rough alignment"
+            f"{args.prediction}: {what}; pass --prediction-landmarks JSON (landmark name -> vertex index) "
+            "for the rough alignment"
         )
     try:
         report = evaluate_reconstruction(pred_v.double(), pred_f, ref_v.double(), ref_f, model.face_region,
                                          correspondences=(pred_landmarks, model.landmarks))
     except ValueError as error:  # e.g. a degenerate mesh: say which files
         raise ValueError(f"{args.prediction} against {args.reference}: {error}") from None
-    print(report)
+    print(report)  # with its warnings, if any
     if args.json:
         from facenormals.core import atomic_write
 

@@ -175,3 +175,50 @@ def test_bad_inputs(head, change, match):
         args["correspondences"] = [[0, 0], [1, 1], [2, 2]]
     with pytest.raises(ValueError, match=match):
         evaluate_reconstruction(**args)
+
+
+def test_meshes_not_in_millimetres_are_refused(head):
+    model, shape = head
+    with pytest.raises(ValueError, match=r"prediction_vertices: the mesh spans 0\.\d+ units across, not the 50-5000"):
+        evaluate_reconstruction(shape / 1000, model.faces, model.mean, model.faces, model.face_region, model)
+    with pytest.raises(ValueError, match=r"reference_vertices: the mesh spans \d+\.?\d* units across"):
+        evaluate_reconstruction(shape, model.faces, model.mean / 10, model.faces, model.face_region, model)
+
+
+def test_triangles_wound_inward_are_refused(head):
+    model, shape = head
+    flipped = model.faces[:, [0, 2, 1]]
+    with pytest.raises(ValueError, match=r"prediction_faces: the triangles face inward .* reverse them"):
+        evaluate_reconstruction(shape, flipped, model.mean, model.faces, model.face_region, (model, model))
+    with pytest.raises(ValueError, match=r"reference_faces: the triangles face inward"):
+        evaluate_reconstruction(shape, model.faces, model.mean, flipped, model.face_region, (model, model))
+
+
+def test_a_reference_facing_away_needs_its_view_direction(head):
+    model, shape = head
+    opengl = model.mean * torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)  # face along +z
+    with pytest.raises(ValueError, match=r"reference_vertices: the face region faces 1\d\d° away from the viewer"):
+        evaluate_reconstruction(shape, model.faces, opengl, model.faces, model.face_region, model)
+    frontal = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    turned = evaluate_reconstruction(shape, model.faces, opengl, model.faces, model.face_region, model,
+                                     view_direction=torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    for name in ("point_to_plane_rmse", "correspondence_rmse"):
+        assert getattr(turned.similarity, name) == pytest.approx(getattr(frontal.similarity, name), abs=1e-6)
+    assert turned.similarity.depth.mean == pytest.approx(frontal.similarity.depth.mean, abs=1e-3)
+
+
+def test_wrong_correspondences_are_warned_about(head):
+    model, shape = head
+    good = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    assert good.warnings == [] and good.similarity.alignment_rms < 5.0
+    assert "alignment RMS" in str(good) and "ICP converged" in str(good) and "warning" not in str(good)
+    swapped = dict(model.landmarks)
+    for a, b in (("right_eye_outer", "left_eye_outer"), ("right_eye_inner", "left_eye_inner")):
+        swapped[a], swapped[b] = model.landmarks[b], model.landmarks[a]
+    swapped["chin"] = model.landmarks["nose_tip"]  # and a chin on the nose: far off
+    swapped["nose_tip"] = model.landmarks["chin"]
+    bad = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, (swapped, model))
+    assert bad.rigid.alignment_rms > 20.0
+    assert any(w.startswith("rigid alignment: its 6 corresponding points stay") for w in bad.warnings)
+    assert "warning: rigid alignment" in str(bad)
+    assert bad.as_dict()["rigid"]["alignment_rms"] == bad.rigid.alignment_rms

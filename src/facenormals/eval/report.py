@@ -60,6 +60,12 @@ RATIO_METRICS = (
     "point_to_plane_rmse", "correspondence_rmse", "depth_mean", "depth_std", "depth_median", "depth_delta90",
 )  # fmt: skip
 ALIGNMENTS = ("rigid", "similarity")
+#: RMS distance (mm) of the rough alignment's corresponding points above which a report warns: the
+#: six default landmarks of random ICT identities (y ~ N(0, 1)) stay 2.5 mm apart (median, 7 at
+#: most over 100), of y ~ 3·N(0, 1) 8 mm (21 at most); left and right eyes swapped leave 27 mm.
+ALIGNMENT_RMS_WARNING = 20.0
+#: Bounding-box diagonal (mm) of an evaluated mesh: a face crop spans about 200, a head with neck 400.
+MILLIMETRE_SPAN = (50.0, 5000.0)
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,7 @@ class AlignmentResult:
     translation: Tensor
     icp_iterations: int
     icp_converged: bool
+    alignment_rms: float = math.nan  # the rough alignment's corresponding points: RMS distance after its fit, mm
 
     def as_dict(self) -> dict[str, object]:
         """Plain JSON-serialisable values; the depth statistics flattened as ``depth_*``."""
@@ -85,6 +92,7 @@ class AlignmentResult:
         out.update({f"depth_{k}": v for k, v in self.depth.as_dict().items()})
         out.update(
             scale=self.scale,
+            alignment_rms=self.alignment_rms,
             icp_iterations=self.icp_iterations,
             icp_converged=self.icp_converged,
             rotation=self.rotation.tolist(),
@@ -131,7 +139,9 @@ class EvaluationReport:
             ("depth points", "depth_count", ""),
             ("depth coverage", "depth_coverage", ""),
             ("scale", "scale", ""),
+            ("alignment RMS", "alignment_rms", "mm"),
             ("ICP iterations", "icp_iterations", ""),
+            ("ICP converged", "icp_converged", ""),
         ]
         data = {a: getattr(self, a).as_dict() for a in ALIGNMENTS}
         lines = [f"{'':<22}{'rigid':>12}{'similarity':>12}", "-" * 50]
@@ -139,12 +149,33 @@ class EvaluationReport:
             cells = [_format(data[a][key]) for a in ALIGNMENTS]
             lines.append(f"{label:<22}{cells[0]:>12}{cells[1]:>12}  {unit}".rstrip())
         lines.append(f"({self.num_points} reference points, {self.num_alignment_points} alignment points)")
+        lines.extend(f"warning: {w}" for w in self.warnings)
         return "\n".join(lines)
+
+    @property
+    def warnings(self) -> list[str]:
+        """Signs that the numbers may be those of a wrong alignment rather than of the shape: the
+        rough alignment's points left more than :data:`ALIGNMENT_RMS_WARNING` mm apart (wrong
+        correspondences: left and right swapped, another vertex order), or ICP not converged."""
+        out = []
+        for name in ALIGNMENTS:
+            result = getattr(self, name)
+            if result.alignment_rms > ALIGNMENT_RMS_WARNING:
+                out.append(f"{name} alignment: its {self.num_alignment_points} corresponding points stay "
+                           f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit; above "
+                           f"{ALIGNMENT_RMS_WARNING:g} mm the correspondences are likely wrong (left and right "
+                           "swapped, another vertex order): check them")
+            if not result.icp_converged:
+                out.append(f"{name} alignment: ICP did not converge in {result.icp_iterations} iterations; the "
+                           "errors may be those of a wrong pose")
+        return out
 
 
 def _format(value: object) -> str:
     if value is None:
         return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, int):
         return str(value)
     return f"{float(value):.4f}" if abs(float(value)) < 10 else f"{float(value):.2f}"
@@ -210,10 +241,51 @@ def _resolve_pairs(
 
 
 def _check_mesh(vertices: object, faces: object, prefix: str) -> tuple[Tensor, np.ndarray]:
+    """Shapes, finite values, millimetres and outward-facing triangles of one mesh."""
     check_shape(vertices, ["N", 3], f"{prefix}_vertices")
     check_floating(vertices, f"{prefix}_vertices")
     check_finite(vertices, f"{prefix}_vertices")
-    return vertices.detach().cpu().double(), _check_faces(faces, vertices.shape[0], f"{prefix}_faces")
+    vertices = vertices.detach().cpu().double()
+    triangles = _check_faces(faces, vertices.shape[0], f"{prefix}_faces")
+    corners = vertices[torch.from_numpy(triangles)]  # (F, 3, 3)
+    used = corners.reshape(-1, 3)
+    span = float((used.amax(0) - used.amin(0)).norm())
+    low, high = MILLIMETRE_SPAN
+    if not low <= span <= high:
+        raise ValueError(
+            f"{prefix}_vertices: the mesh spans {span:.3g} units across, not the {low:g}-{high:g} of a face or head "
+            "in millimetres; every error is reported in mm (a mesh in metres needs its vertices times 1000, "
+            "in centimetres times 10)"
+        )
+    # Outward normals point away from the surface's centre over most of a head's or a face's area;
+    # triangles wound the other way would make the depth test hit the back of the head.
+    cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=1)
+    area = cross.norm(dim=1)
+    centre = (area[:, None] * corners.mean(1)).sum(0) / area.sum().clamp_min(1e-300)
+    outward = float((area * torch.sign((cross * (corners.mean(1) - centre)).sum(1))).sum() / area.sum().clamp_min(1e-300))
+    if outward < -0.25:
+        raise ValueError(
+            f"{prefix}_faces: the triangles face inward (their normals point towards the mesh's centre over "
+            f"{50 * (1 - outward):.0f} % of its area): they are wound clockwise seen from outside; "
+            "reverse them (faces[:, [0, 2, 1]])"
+        )
+    return vertices, triangles
+
+
+def _check_facing(normals: Tensor, direction: Tensor) -> None:
+    """The reference face region must face the viewer (against ``direction``) for depth errors."""
+    mean = normals.mean(0)
+    if float(mean.norm()) < 0.3:  # a closed surface (a sphere, a whole head): no one facing direction
+        return
+    cosine = float(-(mean @ direction) / (mean.norm() * direction.norm()))
+    if cosine < math.cos(math.radians(45.0)):
+        raise ValueError(
+            f"reference_vertices: the face region faces {math.degrees(math.acos(max(-1.0, min(1.0, cosine)))):.0f}° "
+            "away from the viewer, who looks along view_direction (default +z: the model frame, face along -z, "
+            "docs/conventions.md); depth errors would be measured across the face. Rotate the reference into the "
+            "model frame (a mesh in an OpenGL-style frame, face along +z, needs y and z negated) or pass "
+            "view_direction"
+        )
 
 
 def evaluate_reconstruction(
@@ -264,7 +336,11 @@ def evaluate_reconstruction(
 
     Raises:
         ValueError: on bad shapes, dtypes, NaN vertices, out-of-range indices, missing landmarks,
-            or ``same_topology=True`` with different vertex counts.
+            ``same_topology=True`` with different vertex counts, a mesh not in millimetres (its
+            bounding box spans less than 50 or more than 5,000 units), triangles wound inward, or a
+            reference face region facing more than 45° away from the viewer (not in the model frame).
+            Signs of a wrong alignment (the rough alignment's points more than 20 mm apart, ICP not
+            converged) do not raise: they are in :attr:`EvaluationReport.warnings`.
 
     Example:
         >>> from facenormals.models import builtin_head_model
@@ -309,11 +385,14 @@ def evaluate_reconstruction(
             raise ValueError("view_direction: expected a non-zero vector")
     else:
         direction = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    _check_facing(point_normals, direction)
     depth_points = points[point_normals @ direction < 0] if depth_front_facing else points
     pred_faces_t = torch.from_numpy(pred_faces)
     results = {}
     for name, scale in (("rigid", False), ("similarity", True)):
         init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
+        moved = init[0][0] * pred[pairs[:, 0]] @ init[1][0].T + init[2][0]
+        alignment_rms = float((moved - ref[pairs[:, 1]]).square().sum(1).mean().sqrt())
         icp = icp_point_to_plane(
             pred,
             points,
@@ -338,6 +417,7 @@ def evaluate_reconstruction(
             translation=icp.t,
             icp_iterations=icp.iterations,
             icp_converged=icp.converged,
+            alignment_rms=alignment_rms,
         )
     return EvaluationReport(
         rigid=results["rigid"],
