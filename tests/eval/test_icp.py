@@ -103,6 +103,8 @@ def test_rejection_of_distant_pairs(surface):
         ({"init": (1.0, torch.eye(3))}, r"init: expected a tuple \(s, R, t\)"),
         ({"init": (1.0, torch.eye(2), torch.zeros(3))}, r"init: expected R of shape"),
         ({"init": (-1.0, torch.eye(3), torch.zeros(3))}, r"init: expected finite values and a positive scale"),
+        ({"init": (1.0, torch.diag(torch.tensor([1.0, 1, -1])), torch.zeros(3))}, r"init: expected R to be a rotation .* det -1"),
+        ({"init": (1.0, 2 * torch.eye(3), torch.zeros(3))}, r"init: expected R to be a rotation \(orthonormal"),
         ({"direction": "both"}, r"direction: expected one of"),
         ({"max_distance": -1.0}, r"max_distance: expected a positive number"),
         ({"max_iterations": 2.5}, r"max_iterations: expected an integer, got float 2.5"),
