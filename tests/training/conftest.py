@@ -33,3 +33,10 @@ class TinyHeads(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         return self.items[i]
+
+
+class BrokenHeads(TinyHeads):
+    """Every item fails to load, as a corrupt shard does (picklable for DataLoader workers)."""
+
+    def __getitem__(self, i: int) -> dict:
+        raise ValueError(f"shard_00000.npz: sample {i} is damaged")

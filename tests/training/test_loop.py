@@ -245,3 +245,93 @@ def test_a_refused_run_leaves_no_empty_folder(tmp_path):
     with pytest.raises((ValueError, OSError), match="nowhere"):
         train(_config(tmp_path, holdout=str(tmp_path / "nowhere")), TinyHeads(8), progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_config_with_paths_and_numpy_numbers_makes_a_readable_checkpoint(tmp_path):
+    import numpy as np
+    from pathlib import Path
+
+    config = _config(tmp_path, out=Path(tmp_path / "run"), data=Path("unused"), lr=np.float64(3e-3),
+                     steps=np.int64(2), batch_size=np.int32(4))
+    assert isinstance(config.out, str) and type(config.lr) is float and type(config.steps) is int
+    summary = train(config, TinyHeads(8), progress=False)
+    assert load_checkpoint(summary.checkpoint)["config"]["out"] == str(tmp_path / "run")
+    assert train(_config(tmp_path, steps=3), TinyHeads(8), progress=False).step == 3  # resumes
+    export_weights(summary.checkpoint, tmp_path / "w.pt")
+
+
+def test_resuming_with_other_training_settings_says_so(tmp_path, capsys):
+    data = TinyHeads(8)
+    train(_config(tmp_path, steps=2, lr=5e-4, sigma=3.0), data, progress=False)
+    capsys.readouterr()
+    train(_config(tmp_path, steps=4), data, progress=False)
+    out = capsys.readouterr().out
+    assert "with lr 0.003 (checkpoint: 0.0005)" in out and "repeat --lr 0.0005" in out
+    assert "with sigma 1.5 (checkpoint: 3.0)" in out and "warmup_steps" not in out
+
+
+def test_a_rerun_without_a_checkpoint_drops_the_dead_run_s_log_rows(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "log.csv").write_text("step,loss\n1,0.5\n2,0.4\n")  # a run that died before its first checkpoint
+    (run / "eval.csv").write_text("step,normal_mean\n2,30.0\n")
+    train(_config(tmp_path, steps=4, log_every=2, eval_every=100), TinyHeads(8), holdout=TinyHeads(4, seed=1),
+          progress=False)
+    assert [int(r["step"]) for r in csv.DictReader((run / "log.csv").open())] == [2, 4]
+    assert [int(r["step"]) for r in csv.DictReader((run / "eval.csv").open())] == [4]
+
+
+def test_a_finished_run_killed_during_its_final_evaluation_evaluates_on_rerun(tmp_path):
+    data, holdout = TinyHeads(8), TinyHeads(4, seed=1)
+    config = _config(tmp_path, steps=2, eval_every=100)
+    train(config, data, holdout=holdout, progress=False)
+    (tmp_path / "run" / "eval.csv").unlink()  # as if killed after the checkpoint, before the row
+    summary = train(config, data, holdout=holdout, progress=False)
+    assert summary.metrics is not None
+    assert [int(r["step"]) for r in csv.DictReader((tmp_path / "run" / "eval.csv").open())] == [2]
+
+
+def test_ctrl_c_interrupts_the_final_evaluation(tmp_path, monkeypatch):
+    import os
+    import signal
+
+    import facenormals.training.loop as loop
+
+    def interrupted(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        raise AssertionError("SIGINT was swallowed")
+
+    monkeypatch.setattr(loop, "evaluate_network", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(_config(tmp_path, steps=2, eval_every=100), TinyHeads(8), holdout=TinyHeads(4, seed=1), progress=False)
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 2  # the checkpoint came first
+
+
+def test_small_data_and_a_warm_up_longer_than_the_run_are_noted(tmp_path, capsys):
+    train(_config(tmp_path, steps=2, batch_size=8, warmup_steps=5), TinyHeads(6), progress=False)
+    out = capsys.readouterr().out
+    assert "a batch of 8 x 1 process(es) is larger than the 6 training samples" in out
+    assert "--warmup-steps 5 >= --steps 2" in out
+
+
+def test_a_worker_s_data_error_is_one_line(tmp_path):
+    from .conftest import BrokenHeads
+
+    with pytest.raises(ValueError) as error:
+        train(_config(tmp_path, workers=1), BrokenHeads(8), progress=False)
+    assert "shard_00000.npz: sample" in str(error.value) and "is damaged" in str(error.value)
+    assert "\n" not in str(error.value) and "DataLoader worker" not in str(error.value)
+
+
+def test_a_training_checkpoint_given_as_weights_says_how_to_export(tmp_path):
+    summary = train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
+    with pytest.raises(ValueError, match="a training checkpoint, not a weight file; export its weights"):
+        load_weights(summary.checkpoint)
+
+
+def test_an_init_of_another_architecture_leaves_no_folder(tmp_path):
+    summary = train(_config(tmp_path / "a", steps=1), TinyHeads(4), progress=False)
+    weights = export_weights(summary.checkpoint, tmp_path / "w.pt")
+    with pytest.raises(ValueError, match="init: .* holds a network with channels"):
+        train(_config(tmp_path / "b", init=str(weights), base_channels=8), TinyHeads(4), progress=False)
+    assert not (tmp_path / "b" / "run").exists()

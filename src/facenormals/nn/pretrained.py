@@ -54,6 +54,9 @@ def _read_payload(path: Path) -> dict:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
         raise ValueError(f"{path}: not a readable weight file ({describe_load_error(error)})") from None
+    if isinstance(payload, dict) and payload.get("format") == "facenormals-train":
+        raise ValueError(f"{path}: a training checkpoint, not a weight file; export its weights with "
+                         f"`facenormals train ... --export FILE` or facenormals.training.export_weights")
     if not isinstance(payload, dict) or payload.get("format") != WEIGHTS_FORMAT:
         raise ValueError(f"{path}: not a facenormals network weight file")
     if payload.get("version") != WEIGHTS_VERSION:

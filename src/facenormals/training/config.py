@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,6 +83,7 @@ class TrainConfig:
     init: str | None = None
 
     def __post_init__(self) -> None:
+        self._normalise_types()
         if Path(self.out).exists() and not Path(self.out).is_dir():
             raise ValueError(f"out: {self.out} exists and is not a folder")
         for name in ("steps", "batch_size", "log_every", "checkpoint_every", "eval_every", "eval_samples",
@@ -111,6 +114,23 @@ class TrainConfig:
             raise ValueError(f"threads: expected a positive integer or None, got {self.threads!r}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ValueError(f"max_minutes: expected a positive value or None, got {self.max_minutes!r}")
+
+    def _normalise_types(self) -> None:
+        """Paths become ``str``, NumPy (or other) integers and reals plain ``int`` and ``float``: the
+        config is stored in every checkpoint, which is read back with ``weights_only=True`` and
+        accepts only plain Python values (a ``pathlib.Path`` there made a checkpoint unreadable)."""
+        for field in dataclasses.fields(self):
+            name, value = field.name, getattr(self, field.name)
+            if value is None or isinstance(value, bool):
+                continue
+            if name in ("data", "out", "holdout", "init"):
+                if not isinstance(value, (str, os.PathLike)):
+                    raise ValueError(f"{name}: expected a path (str or os.PathLike), got {type(value).__name__}")
+                setattr(self, name, os.fspath(value))
+            elif field.type in ("int", "int | None") and isinstance(value, numbers.Integral):
+                setattr(self, name, int(value))
+            elif field.type in ("float", "float | None") and isinstance(value, numbers.Real):
+                setattr(self, name, float(value))
 
     def learning_rate(self, step: int) -> float:
         """The learning rate of optimiser step ``step`` (0-based): linear warm-up, then cosine decay."""

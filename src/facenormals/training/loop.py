@@ -107,6 +107,48 @@ def _truncate_csv(path: Path, step: int) -> None:
             writer.writerows(kept)
 
 
+def _last_logged_step(path: Path) -> int | None:
+    if not path.exists():
+        return None
+    with path.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    return int(rows[-1]["step"]) if rows else None
+
+
+#: Settings that shape the optimisation; a resume that changes one says so (``steps``, ``data``,
+#: ``seed`` and ``batch_size`` have their own notes or are meant to change).
+_TRAINING_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
+                      "landmark_peak_weight", "foreground_weight", "sigma", "precision")
+
+
+def _note_changed_settings(stored: dict, config: TrainConfig, last: Path) -> None:
+    for key in _TRAINING_SETTINGS:
+        old, new = stored.get(key), getattr(config, key)
+        if old != new:
+            print(f"note: resuming {last} with {key} {new} (checkpoint: {old}); the run goes on with the new "
+                  f"value (repeat --{key.replace('_', '-')} {old} to continue it unchanged)")
+
+
+def _restore_handlers(previous: dict) -> None:
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+
+
+def _from_worker(error: Exception) -> Exception:
+    """A DataLoader worker's error carries the worker's whole traceback in its message; keep its last
+    line (``ValueError: shard_00000.npz: ...``) so the command line prints one clear line."""
+    text = str(error)
+    if "in DataLoader worker process" not in text:
+        return error
+    last_line = next((line for line in reversed(text.strip().splitlines()) if line.strip()), text)
+    prefix = f"{type(error).__name__}: "
+    message = last_line[len(prefix):] if last_line.startswith(prefix) else last_line
+    try:
+        return type(error)(message)
+    except Exception:  # an exception type with other constructor arguments
+        return RuntimeError(message)
+
+
 def _ignore_stop_signals(_worker_id: int) -> None:
     """DataLoader workers leave SIGINT/SIGTERM to the training process, which stops cleanly."""
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -163,12 +205,14 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         holdout = _open_dataset(config.holdout, config, with_maps=False)
     if config.init is not None and not last.exists() and not Path(config.init).is_file():
         raise FileNotFoundError(f"init: {config.init}: no such weight file")
-    if ctx.is_main:  # only now: a run refused for its data or --init leaves no empty folder
-        out.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(config.seed)
     net = NormalLandmarkUNet(base_channels=config.base_channels, depth=config.depth).to(ctx.device)
     ema = copy.deepcopy(net).eval().requires_grad_(False)
+    if config.init is not None and not last.exists():
+        _initialise_from(net, ema, config)
+    if ctx.is_main:  # only now: a run refused for its data or --init leaves no empty folder
+        out.mkdir(parents=True, exist_ok=True)
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     step, samples_seen = 0, 0
     if ctx.is_main:  # checkpoint-sized temporaries of runs killed while saving
@@ -198,10 +242,16 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             group["weight_decay"] = config.weight_decay
         step, samples_seen = int(state["step"]), int(state["samples_seen"])
         if ctx.is_main:
-            for name in ("log.csv", "eval.csv"):
-                _truncate_csv(out / name, step)
-    elif config.init is not None:
-        _initialise_from(net, ema, config)
+            _note_changed_settings(state["config"], config, last)
+    if ctx.is_main:  # rows logged after the checkpoint (all of them when there is none) are repeated now
+        for name in ("log.csv", "eval.csv"):
+            _truncate_csv(out / name, step)
+        if config.batch_size * ctx.world_size > len(dataset):
+            print(f"note: a batch of {config.batch_size} x {ctx.world_size} process(es) is larger than the "
+                  f"{len(dataset)} training samples: every batch repeats samples")
+        if config.warmup_steps >= config.steps:
+            print(f"note: --warmup-steps {config.warmup_steps} >= --steps {config.steps}: the learning rate rises "
+                  "for the whole run and never decays")
     model = net
     if ctx.distributed:
         model = torch.nn.parallel.DistributedDataParallel(
@@ -257,7 +307,10 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     try:
         batches = iter(loader)
         while step < config.steps:
-            batch = next(batches)
+            try:
+                batch = next(batches)
+            except Exception as error:
+                raise _from_worker(error) from None
             torch.manual_seed((config.seed * 1_000_003 + step) * ctx.world_size + ctx.rank)  # resumable augmentation
             images = augment(batch["image"].to(ctx.device, non_blocking=True))
             normals = batch["normals"].to(ctx.device, non_blocking=True)
@@ -320,16 +373,20 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                         bar.set_postfix(loss=f"{row['loss']:.4f}", img_s=f"{row['images_per_s']:.1f}")
             if bar is not None:
                 bar.update(1)
-            if step % config.checkpoint_every == 0:
-                checkpoint()
-            if step % config.eval_every == 0 and step < config.steps:
-                metrics = evaluate(config.eval_samples)
+            if step % config.eval_every == 0 and step < config.steps:  # before the checkpoint: a run killed
+                metrics = evaluate(config.eval_samples)                # in between evaluates again on resume
                 if metrics is not None and bar is not None:
                     bar.write(f"step {step}: {metrics}")
+            if step % config.checkpoint_every == 0:
+                checkpoint()
         if not already_finished:
             checkpoint()
-            if step >= config.steps:
-                metrics = evaluate(None)
+        _restore_handlers(previous)  # Ctrl-C during the final evaluation interrupts it
+        previous = {}
+        if stop_signal:
+            stopped_by = "signal"
+        elif step >= config.steps and (not already_finished or _last_logged_step(out / "eval.csv") != step):
+            metrics = evaluate(None)  # (again, for a finished run killed during its final evaluation)
     finally:
         # Workers ignore SIGINT/SIGTERM (the training process stops cleanly), so they are told to exit
         # here: left to the interpreter's exit, which terminates them with SIGTERM, an error raised
@@ -339,8 +396,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             shutdown()
         if bar is not None:
             bar.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        _restore_handlers(previous)
         if ctx.distributed and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
     return TrainSummary(step=step, samples_seen=samples_seen, finished=step >= config.steps,
