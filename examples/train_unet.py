@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 from torch.utils.data import Subset
@@ -62,8 +63,12 @@ def main() -> None:
 
     # 2. Train (resumes from out/run/last.pt).
     config = TrainConfig(data=str(data), out=str(out / "run"), holdout=str(holdout), steps=args.steps,
-                         batch_size=args.batch_size, workers=min(args.workers, 1))
+                         batch_size=args.batch_size, workers=min(args.workers, 1),
+                         warmup_steps=min(TrainConfig.warmup_steps, max(1, args.steps // 10)))
     summary = train(config)
+    if summary.stopped_by == "signal":  # Ctrl-C / SIGTERM: the checkpoint is saved; no half-trained export
+        print(f"stopped at step {summary.step}; rerun the same command to resume from {summary.checkpoint}")
+        sys.exit(130)
     if rank != 0:
         return
     print(f"trained to step {summary.step} ({summary.samples_seen} samples, stopped by {summary.stopped_by})")
