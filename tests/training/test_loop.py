@@ -335,3 +335,11 @@ def test_an_init_of_another_architecture_leaves_no_folder(tmp_path):
     with pytest.raises(ValueError, match="init: .* holds a network with channels"):
         train(_config(tmp_path / "b", init=str(weights), base_channels=8), TinyHeads(4), progress=False)
     assert not (tmp_path / "b" / "run").exists()
+
+
+def test_an_init_beside_a_checkpoint_is_noted_as_ignored(tmp_path, capsys):
+    summary = train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
+    weights = export_weights(summary.checkpoint, tmp_path / "w.pt")
+    capsys.readouterr()
+    train(_config(tmp_path, steps=2, init=str(weights)), TinyHeads(4), progress=False)
+    assert "--init " + str(weights) + " is ignored" in capsys.readouterr().out

@@ -243,6 +243,9 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         step, samples_seen = int(state["step"]), int(state["samples_seen"])
         if ctx.is_main:
             _note_changed_settings(state["config"], config, last)
+            if config.init is not None:
+                print(f"note: --init {config.init} is ignored: {last} exists and the run resumes from it "
+                      "(another --out starts a new run from those weights)")
     if ctx.is_main:  # rows logged after the checkpoint (all of them when there is none) are repeated now
         for name in ("log.csv", "eval.csv"):
             _truncate_csv(out / name, step)
