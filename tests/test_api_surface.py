@@ -39,7 +39,8 @@ PUBLIC = {
     "facenormals.eval": ["AlignmentResult", "DEFAULT_ALIGNMENT_LANDMARKS", "DepthStatistics", "EvaluationReport",
                          "ICPResult", "apply_similarity", "closest_points_on_mesh", "correspondence_errors",
                          "depth_errors", "depth_statistics", "evaluate_reconstruction", "fit_similarity",
-                         "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "summarise"],
+                         "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "shares_vertex_order",
+                         "summarise"],
     "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "drop_hidden_landmarks",
                             "fit_head", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"],
     # used by examples/ (paper_pipeline.py, demo_synthetic_fit.py) and the `demo` command

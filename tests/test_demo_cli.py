@@ -197,7 +197,10 @@ def test_evaluate_needs_landmarks_for_a_prediction_with_other_triangles(tmp_path
 
     save_mesh(pred, model.mean[order], torch.argsort(order)[model.faces])  # same surface, another vertex order
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin"]) == 1
-    assert "has the model's vertex count but other triangles" in capsys.readouterr().err
+    assert "has the model's vertex count but not its vertex order" in capsys.readouterr().err
+    rotated = tmp_path / "rotated.ply"
+    save_mesh(rotated, model.mean, model.faces[torch.randperm(len(model.faces))][:, [1, 2, 0]])
+    assert main(["evaluate", str(rotated), str(ref), "--model", "builtin"]) == 0  # same vertex order
     landmarks = tmp_path / "lm.json"
     landmarks.write_text(json.dumps({k: int(torch.argsort(order)[v]) for k, v in model.landmarks.items()}))
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(landmarks)]) == 0

@@ -93,9 +93,7 @@ def _cmd_models(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    import torch
-
-    from facenormals.eval import evaluate_reconstruction
+    from facenormals.eval import evaluate_reconstruction, shares_vertex_order
     from facenormals.mesh import load_mesh
     from facenormals.models import load_model
 
@@ -123,11 +121,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if outside:
             raise ValueError(f"{args.prediction_landmarks}: expected vertex indices in [0, {pred_v.shape[0]}) of "
                              f"{args.prediction}, got {outside}")
-    elif pred_v.shape[0] == model.num_vertices and torch.equal(pred_f, model.faces.to(pred_f.dtype)):
+    elif pred_v.shape[0] == model.num_vertices and shares_vertex_order(pred_f, model.faces):
         pred_landmarks = model.landmarks
     else:
         what = (f"has {pred_v.shape[0]} vertices, not the model's {model.num_vertices}" if pred_v.shape[0] !=
-                model.num_vertices else "has the model's vertex count but other triangles (another vertex order or winding?)")
+                model.num_vertices else "has the model's vertex count but not its vertex order (its triangles join other "
+                "vertices)")
         raise ValueError(
             f"{args.prediction}: {what}; pass --prediction-landmarks JSON (landmark name -> vertex index) "
             "for the rough alignment"
@@ -177,6 +176,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     fields = TrainConfig.__dataclass_fields__
     values = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
+    last = Path(args.out) / "last.pt"
+    if last.is_file():  # a resume keeps the checkpoint's training settings unless the command gives them
+        from facenormals.training import load_checkpoint
+        from facenormals.training.loop import RESUMED_SETTINGS
+
+        stored = load_checkpoint(last)["config"]
+        values.update({key: stored[key] for key in RESUMED_SETTINGS if key not in values and key in stored})
     config = TrainConfig(**values)
     if args.export:
         _check_export_path(Path(args.export), Path(config.out))
@@ -325,7 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--holdout", default=None, help="held-out dataset folder scored during training")
     for name, kind, text in (
         ("steps", int, "optimiser steps of the whole run"), ("batch-size", int, "images per step and process"),
-        ("lr", float, "peak AdamW learning rate"), ("warmup-steps", int, None), ("weight-decay", float, None),
+        ("lr", float, "peak AdamW learning rate"), ("warmup-steps", int, None),
+        ("min-lr-ratio", float, "the cosine's floor, as a fraction of --lr"), ("weight-decay", float, None),
         ("ema-decay", float, "decay of the exported weight average"),
         ("landmark-weight", float, "weight of L_Z"), ("landmark-peak-weight", float, "extra weight under the Gaussians"),
         ("foreground-weight", float, None),

@@ -222,3 +222,18 @@ def test_wrong_correspondences_are_warned_about(head):
     assert any(w.startswith("rigid alignment: its 6 corresponding points stay") for w in bad.warnings)
     assert "warning: rigid alignment" in str(bad)
     assert bad.as_dict()["rigid"]["alignment_rms"] == bad.rigid.alignment_rms
+
+
+def test_shares_vertex_order_ignores_triangle_order_start_winding_and_diagonals(head):
+    from facenormals.eval import shares_vertex_order
+
+    model, _ = head
+    faces = model.faces
+    generator = torch.Generator().manual_seed(0)
+    assert shares_vertex_order(faces[torch.randperm(len(faces), generator=generator)][:, [1, 2, 0]], faces)
+    assert shares_vertex_order(faces[:, [0, 2, 1]], faces)
+    order = torch.randperm(model.num_vertices, generator=generator)
+    assert not shares_vertex_order(torch.argsort(order)[faces], faces)
+    shuffled = faces[torch.randperm(len(faces), generator=generator)][:, [2, 0, 1]]
+    report = evaluate_reconstruction(model.mean, shuffled, model.mean, model.faces, model.face_region)
+    assert report.same_topology and report.similarity.correspondence_rmse < 1e-9

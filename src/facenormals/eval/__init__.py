@@ -18,7 +18,13 @@ from facenormals.eval.metrics import (
     depth_statistics,
     point_to_plane_errors,
 )
-from facenormals.eval.report import AlignmentResult, EvaluationReport, evaluate_reconstruction, summarise
+from facenormals.eval.report import (
+    AlignmentResult,
+    EvaluationReport,
+    evaluate_reconstruction,
+    shares_vertex_order,
+    summarise,
+)
 from facenormals.eval.surface import closest_points_on_mesh
 
 __all__ = [
@@ -37,5 +43,6 @@ __all__ = [
     "icp_point_to_plane",
     "landmark_correspondences",
     "point_to_plane_errors",
+    "shares_vertex_order",
     "summarise",
 ]
