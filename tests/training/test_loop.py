@@ -266,7 +266,7 @@ def test_resuming_with_other_training_settings_says_so(tmp_path, capsys):
     capsys.readouterr()
     train(_config(tmp_path, steps=4), data, progress=False)
     out = capsys.readouterr().out
-    assert "with lr 0.003 (checkpoint: 0.0005)" in out and "repeat --lr 0.0005" in out
+    assert "with lr 0.003 (checkpoint: 0.0005)" in out and "e.g. --lr 0.0005" in out
     assert "with sigma 1.5 (checkpoint: 3.0)" in out and "warmup_steps" not in out
 
 
@@ -343,3 +343,35 @@ def test_an_init_beside_a_checkpoint_is_noted_as_ignored(tmp_path, capsys):
     capsys.readouterr()
     train(_config(tmp_path, steps=2, init=str(weights)), TinyHeads(4), progress=False)
     assert "--init " + str(weights) + " is ignored" in capsys.readouterr().out
+
+
+def test_a_worker_s_multi_line_or_key_error_keeps_its_whole_message():
+    from facenormals.training.loop import _from_worker
+
+    wrapped = ValueError("Caught ValueError in DataLoader worker process 0.\nOriginal Traceback (most recent call "
+                         "last):\n  File \"x.py\", line 1, in f\n    raise ValueError(...)\nValueError: shard_0.npz: "
+                         "bad array\n  expected (N, 3)\n  got (N, 4)\n")
+    assert str(_from_worker(wrapped)) == "shard_0.npz: bad array\n  expected (N, 3)\n  got (N, 4)"
+    key = KeyError("Caught KeyError in DataLoader worker process 0.\nOriginal Traceback (most recent call last):\n"
+                   "  File \"x.py\", line 1, in f\nKeyError: 'image is not a file in the archive'\n")
+    unwrapped = _from_worker(key)
+    assert isinstance(unwrapped, LookupError) and str(unwrapped) == "'image is not a file in the archive'"
+    plain = ValueError("no worker here")
+    assert _from_worker(plain) is plain
+
+
+def test_the_command_line_resumes_with_the_checkpoint_s_schedule(tmp_path, monkeypatch):
+    import facenormals.training as training
+    from facenormals.cli import main
+
+    seen = []
+    monkeypatch.setattr(training, "train", lambda config, progress=True: seen.append(config) or
+                        __import__("facenormals.training.loop", fromlist=["x"]).TrainSummary(
+                            0, 0, False, "steps", 0.0, None, tmp_path / "run" / "last.pt"))
+    (tmp_path / "run").mkdir()
+    state = {"format": "facenormals-train", "config": _config(tmp_path, lr=5e-4, warmup_steps=7).to_dict(), "step": 1}
+    torch.save(state, tmp_path / "run" / "last.pt")
+    main(["train", "--data", "unused", "--out", str(tmp_path / "run"), "--steps", "9", "--quiet"])
+    main(["train", "--data", "unused", "--out", str(tmp_path / "run"), "--steps", "9", "--lr", "1e-3", "--quiet"])
+    assert (seen[0].lr, seen[0].warmup_steps, seen[0].steps) == (5e-4, 7, 9)
+    assert (seen[1].lr, seen[1].warmup_steps) == (1e-3, 7)

@@ -115,18 +115,21 @@ def _last_logged_step(path: Path) -> int | None:
     return int(rows[-1]["step"]) if rows else None
 
 
-#: Settings that shape the optimisation; a resume that changes one says so (``steps``, ``data``,
-#: ``seed`` and ``batch_size`` have their own notes or are meant to change).
-_TRAINING_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
+#: Settings that shape the optimisation: a resume that changes one says so (``steps``, ``data``,
+#: ``seed`` and ``batch_size`` have their own notes or are meant to change), and ``facenormals train``
+#: takes them from the checkpoint unless its command line gives them.
+RESUMED_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
                       "landmark_peak_weight", "foreground_weight", "sigma", "precision")
 
 
 def _note_changed_settings(stored: dict, config: TrainConfig, last: Path) -> None:
-    for key in _TRAINING_SETTINGS:
-        old, new = stored.get(key), getattr(config, key)
+    for key in RESUMED_SETTINGS:
+        if key not in stored:  # a checkpoint older than the setting
+            continue
+        old, new = stored[key], getattr(config, key)
         if old != new:
             print(f"note: resuming {last} with {key} {new} (checkpoint: {old}); the run goes on with the new "
-                  f"value (repeat --{key.replace('_', '-')} {old} to continue it unchanged)")
+                  f"value (set {key} = {old} again, e.g. --{key.replace('_', '-')} {old}, to continue it unchanged)")
 
 
 def _restore_handlers(previous: dict) -> None:
@@ -135,16 +138,20 @@ def _restore_handlers(previous: dict) -> None:
 
 
 def _from_worker(error: Exception) -> Exception:
-    """A DataLoader worker's error carries the worker's whole traceback in its message; keep its last
-    line (``ValueError: shard_00000.npz: ...``) so the command line prints one clear line."""
-    text = str(error)
+    """A DataLoader worker's error carries the worker's whole traceback in its message; keep only the
+    worker's own message (from its ``ValueError: ...`` line to the end) so the command line prints
+    it without the traceback. A ``KeyError`` becomes a ``LookupError`` (``KeyError`` would quote its
+    text a second time)."""
+    text = error.args[0] if error.args and isinstance(error.args[0], str) else str(error)  # KeyError quotes str()
     if "in DataLoader worker process" not in text:
         return error
-    last_line = next((line for line in reversed(text.strip().splitlines()) if line.strip()), text)
+    lines = text.rstrip().splitlines()
     prefix = f"{type(error).__name__}: "
-    message = last_line[len(prefix):] if last_line.startswith(prefix) else last_line
+    start = max((i for i, line in enumerate(lines) if line.startswith(prefix)), default=None)
+    message = "\n".join(lines[start:])[len(prefix):] if start is not None else lines[-1]
+    kind = LookupError if isinstance(error, KeyError) else type(error)
     try:
-        return type(error)(message)
+        return kind(message)
     except Exception:  # an exception type with other constructor arguments
         return RuntimeError(message)
 
@@ -252,7 +259,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         if config.batch_size * ctx.world_size > len(dataset):
             print(f"note: a batch of {config.batch_size} x {ctx.world_size} process(es) is larger than the "
                   f"{len(dataset)} training samples: every batch repeats samples")
-        if config.warmup_steps >= config.steps:
+        if config.warmup_steps >= config.steps and step < config.steps:
             print(f"note: --warmup-steps {config.warmup_steps} >= --steps {config.steps}: the learning rate rises "
                   "for the whole run and never decays")
     model = net
