@@ -31,7 +31,12 @@ __all__ = [
     "check_shape",
     "check_tensor",
     "environment_integer",
+    "outside_millimetre_span",
 ]
+
+#: Bounding-box diagonal, in mm, of anything facenormals measures (a face crop spans about 200, a
+#: head with neck about 400); outside it, lengths are almost surely in metres or centimetres.
+MILLIMETRE_SPAN = (50.0, 5000.0)
 
 
 def _format_shape(shape: Sequence[str | int]) -> str:
@@ -271,6 +276,22 @@ def check_image_size(image_size: object, name: str = "image_size") -> tuple[int,
         return check_integer(height, name, 1), check_integer(width, name, 1)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected (H, W), two integers >= 1, got {image_size!r}") from None
+
+
+def outside_millimetre_span(points: Tensor) -> float | None:
+    """The bounding-box diagonal of ``points`` ``(..., 3)`` when it lies outside
+    :data:`MILLIMETRE_SPAN` (a model or mesh not in mm), else ``None``.
+
+    Example:
+        >>> outside_millimetre_span(torch.tensor([[0.0, 0, 0], [0.2, 0.1, 0.1]])) is not None
+        True
+        >>> outside_millimetre_span(torch.tensor([[0.0, 0, 0], [200.0, 100, 100]])) is None
+        True
+    """
+    flat = points.detach().reshape(-1, 3)
+    span = float((flat.amax(0) - flat.amin(0)).norm())
+    low, high = MILLIMETRE_SPAN
+    return None if low <= span <= high else span
 
 
 def environment_integer(name: str, default: int) -> int:

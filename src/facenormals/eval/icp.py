@@ -78,10 +78,10 @@ def _parse_init(init, dtype=np.float64) -> tuple[float, np.ndarray, np.ndarray]:
     out = float(s), rotation.reshape(3, 3).numpy().astype(dtype), translation.reshape(3).numpy().astype(dtype)
     if not (np.isfinite(out[0]) and out[0] > 0 and np.isfinite(out[1]).all() and np.isfinite(out[2]).all()):
         raise ValueError("init: expected finite values and a positive scale")
-    error = float(np.abs(out[1].T @ out[1] - np.eye(3)).max())
-    if error > 1e-5 or np.linalg.det(out[1]) < 0:  # float32 rotations are orthonormal to ~1e-7
+    error, det = float(np.abs(out[1].T @ out[1] - np.eye(3)).max()), float(np.linalg.det(out[1]))
+    if error > 1e-5 or det < 0:  # float32 rotations are orthonormal to ~1e-7
         raise ValueError(f"init: expected R to be a rotation (orthonormal, det +1), got max |RᵀR − I| = {error:.2g} "
-                         f"and det {np.linalg.det(out[1]):.3g}")
+                         f"and det {det:.3g}")
     return out
 
 

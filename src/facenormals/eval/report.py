@@ -35,8 +35,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_shape
-from facenormals.eval.align import DEFAULT_ALIGNMENT_LANDMARKS, fit_similarity, landmark_correspondences
+from facenormals.core.check import MILLIMETRE_SPAN, check_finite, check_floating, check_shape, outside_millimetre_span
+from facenormals.eval.align import (DEFAULT_ALIGNMENT_LANDMARKS, apply_similarity, fit_similarity,
+                                    landmark_correspondences)
 from facenormals.eval.icp import icp_point_to_plane
 from facenormals.eval.metrics import (
     DepthStatistics,
@@ -64,8 +65,6 @@ ALIGNMENTS = ("rigid", "similarity")
 #: six default landmarks of random ICT identities (y ~ N(0, 1)) stay 2.5 mm apart (median, 7 at
 #: most over 100), of y ~ 3·N(0, 1) 8 mm (21 at most); left and right eyes swapped leave 27 mm.
 ALIGNMENT_RMS_WARNING = 20.0
-#: Bounding-box diagonal (mm) of an evaluated mesh: a face crop spans about 200, a head with neck 400.
-MILLIMETRE_SPAN = (50.0, 5000.0)
 
 
 @dataclass(frozen=True)
@@ -246,11 +245,10 @@ def _check_mesh(vertices: object, faces: object, prefix: str) -> tuple[Tensor, n
     check_finite(vertices, f"{prefix}_vertices")
     vertices = vertices.detach().cpu().double()
     triangles = _check_faces(faces, vertices.shape[0], f"{prefix}_faces")
-    corners = vertices[torch.from_numpy(triangles)]  # (F, 3, 3)
-    used = corners.reshape(-1, 3)
-    span = float((used.amax(0) - used.amin(0)).norm())
-    low, high = MILLIMETRE_SPAN
-    if not low <= span <= high:
+    corners = vertices[torch.from_numpy(triangles)]  # (F, 3, 3): the vertices in use
+    span = outside_millimetre_span(corners)
+    if span is not None:
+        low, high = MILLIMETRE_SPAN
         raise ValueError(
             f"{prefix}_vertices: the mesh spans {span:.3g} units across, not the {low:g}-{high:g} of a face or head "
             "in millimetres; every error is reported in mm (a mesh in metres needs its vertices times 1000, "
@@ -259,9 +257,10 @@ def _check_mesh(vertices: object, faces: object, prefix: str) -> tuple[Tensor, n
     # Outward normals point away from the surface's centre over most of a head's or a face's area;
     # triangles wound the other way would make the depth test hit the back of the head.
     cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=1)
-    area = cross.norm(dim=1)
-    centre = (area[:, None] * corners.mean(1)).sum(0) / area.sum().clamp_min(1e-300)
-    outward = float((area * torch.sign((cross * (corners.mean(1) - centre)).sum(1))).sum() / area.sum().clamp_min(1e-300))
+    area, centroids = cross.norm(dim=1), corners.mean(1)
+    total = area.sum().clamp_min(1e-300)
+    centre = (area[:, None] * centroids).sum(0) / total
+    outward = float((area * torch.sign((cross * (centroids - centre)).sum(1))).sum() / total)
     if outward < -0.25:
         raise ValueError(
             f"{prefix}_faces: the triangles face inward (their normals point towards the mesh's centre over "
@@ -284,13 +283,12 @@ def shares_vertex_order(faces: Tensor, reference_faces: Tensor, min_shared: floa
         >>> shares_vertex_order(torch.tensor([[3, 2, 1], [3, 1, 0]]), quad, min_shared=1.0)
         False
     """
-
-    if torch.as_tensor(faces).numel() == 0 or torch.as_tensor(reference_faces).numel() == 0:
+    faces, reference_faces = (torch.as_tensor(f).detach().cpu().long() for f in (faces, reference_faces))
+    if faces.numel() == 0 or reference_faces.numel() == 0:
         return False
-    size = int(max(torch.as_tensor(faces).max(), torch.as_tensor(reference_faces).max())) + 1
+    size = int(max(faces.max(), reference_faces.max())) + 1
 
-    def keys(f: Tensor) -> Tensor:
-        f = torch.as_tensor(f).detach().cpu().long()
+    def keys(f: Tensor) -> Tensor:  # each undirected edge once, as low * size + high
         pairs = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
         return torch.unique(pairs.min(1).values * size + pairs.max(1).values)
 
@@ -415,7 +413,7 @@ def evaluate_reconstruction(
     results = {}
     for name, scale in (("rigid", False), ("similarity", True)):
         init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
-        moved = init[0][0] * pred[pairs[:, 0]] @ init[1][0].T + init[2][0]
+        moved = apply_similarity(pred[pairs[:, 0]][None], *init)[0]
         alignment_rms = float((moved - ref[pairs[:, 1]]).square().sum(1).mean().sqrt())
         icp = icp_point_to_plane(
             pred,

@@ -13,7 +13,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_finite, check_floating, check_integer, check_shape
+from facenormals.core.check import (MILLIMETRE_SPAN, check_faces, check_finite, check_floating, check_integer,
+                                    check_shape, outside_millimetre_span)
 from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
@@ -261,12 +262,12 @@ class MorphableModel(nn.Module):
             ...
             ValueError: model 'm': its mean spans 0.367 units across, not the 50-5000 of a face or head in millimetres; facenormals works in mm (a model in metres needs its mean and bases times 1000, docs/models.md)
         """
-        mean = self.mean.detach()  # never empty: a model has at least one triangle
-        span = float((mean.amax(0) - mean.amin(0)).norm())
-        if not 50.0 <= span <= 5000.0:
+        span = outside_millimetre_span(self.mean)  # never empty: a model has at least one triangle
+        if span is not None:
+            low, high = MILLIMETRE_SPAN
             raise ValueError(
-                f"model {self.name!r}: its mean spans {span:.3g} units across, not the 50-5000 of a face or head in "
-                "millimetres; facenormals works in mm (a model in metres needs its mean and bases times 1000, "
+                f"model {self.name!r}: its mean spans {span:.3g} units across, not the {low:g}-{high:g} of a face or "
+                "head in millimetres; facenormals works in mm (a model in metres needs its mean and bases times 1000, "
                 "docs/models.md)"
             )
 

@@ -93,12 +93,17 @@ def _append_csv(path: Path, fields: list[str], row: dict) -> None:
         writer.writerow({k: row[k] for k in fields})
 
 
+def _read_rows(path: Path) -> list[dict]:
+    """The rows of a CSV log (none if it does not exist)."""
+    if not path.exists():
+        return []
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
 def _truncate_csv(path: Path, step: int) -> None:
     """Drop the rows logged after ``step`` (a run that died after its last checkpoint repeats them)."""
-    if not path.exists():
-        return
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
+    rows = _read_rows(path)
     kept = [r for r in rows if int(r["step"]) <= step]
     if len(kept) != len(rows):  # rewritten beside and renamed over it: an error leaves the old log
         with atomic_write(path) as part, part.open("w", newline="") as handle:
@@ -108,10 +113,7 @@ def _truncate_csv(path: Path, step: int) -> None:
 
 
 def _last_logged_step(path: Path) -> int | None:
-    if not path.exists():
-        return None
-    with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
+    rows = _read_rows(path)
     return int(rows[-1]["step"]) if rows else None
 
 
@@ -119,7 +121,7 @@ def _last_logged_step(path: Path) -> int | None:
 #: ``seed`` and ``batch_size`` have their own notes or are meant to change), and ``facenormals train``
 #: takes them from the checkpoint unless its command line gives them.
 RESUMED_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
-                      "landmark_peak_weight", "foreground_weight", "sigma", "precision")
+                    "landmark_peak_weight", "foreground_weight", "sigma", "precision")
 
 
 def _note_changed_settings(stored: dict, config: TrainConfig, last: Path) -> None:
