@@ -61,3 +61,21 @@ def test_builtin_landmarks_sit_on_the_right_anatomy():
     assert min(abs(lm[n][0]) for n in ear_names) > max(abs(lm[n][0]) for n in LANDMARK_NAMES if n not in ear_names)
     assert x.max() in [abs(lm[n][0]) for n in ear_names]
     assert lm["right_eye_outer"][1] < lm["nose_tip"][1] < lm["upper_lip"][1] < lm["lower_lip"][1] < lm["chin"][1]
+
+
+def test_icosphere_is_trimeshs_vertex_for_vertex_without_importing_it():
+    # the built-in head's vertex order must not move with a trimesh release: it is built here, and
+    # equals trimesh's own icosphere bit for bit (so heads saved before stay comparable)
+    import subprocess
+    import sys
+
+    from facenormals.models.builtin import _icosphere
+
+    for subdivisions in (0, 1, 3, 5):
+        vertices, faces = _icosphere(subdivisions)
+        sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+        assert np.array_equal(vertices, sphere.vertices) and np.array_equal(faces, sphere.faces)
+    code = ("import sys; from facenormals.models import builtin_head_model; builtin_head_model(); "
+            "print('trimesh' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

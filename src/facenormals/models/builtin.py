@@ -74,11 +74,34 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
     return t * t * (3.0 - 2.0 * t)
 
 
-def _icosphere() -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
+def _icosphere(subdivisions: int = _SUBDIVISIONS) -> tuple[np.ndarray, np.ndarray]:
+    """The unit icosphere: vertices ``(V, 3)`` float64 and outward faces ``(F, 3)`` int64.
 
-    sphere = trimesh.creation.icosphere(subdivisions=_SUBDIVISIONS, radius=1.0)
-    return np.asarray(sphere.vertices, dtype=np.float64), np.asarray(sphere.faces, dtype=np.int64)
+    Each step splits every triangle into four at its edge midpoints and pushes the vertices back
+    onto the sphere. The vertex order is part of the model (saved meshes, vertex indices), so it is
+    fixed here rather than left to a library: the midpoints are appended in the order of their
+    edges sorted by (larger, smaller) vertex index, which is also trimesh 4-5's order, so
+    ``trimesh.creation.icosphere`` gives the same array (tested) without its 0.5 s import.
+    """
+    phi = (1.0 + np.sqrt(5.0)) / 2.0
+    a, b = 1.0 / np.sqrt(1.0 + phi * phi), phi / np.sqrt(1.0 + phi * phi)
+    vertices = np.array([[-a, b, 0], [a, b, 0], [-a, -b, 0], [a, -b, 0], [0, -a, b], [0, a, b],
+                         [0, -a, -b], [0, a, -b], [b, 0, -a], [b, 0, a], [-b, 0, -a], [-b, 0, a]])
+    faces = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                      [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                      [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]], dtype=np.int64)
+    for _ in range(subdivisions):
+        count = len(vertices)
+        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, first, inverse = np.unique(edges[:, 1] * count + edges[:, 0], return_index=True, return_inverse=True)
+        mid = inverse.reshape(-1, 3) + count  # the midpoints of each face's edges (01, 12, 20)
+        corner = faces.T
+        faces = np.stack([corner[0], mid[:, 0], mid[:, 2], mid[:, 0], corner[1], mid[:, 1],
+                          mid[:, 2], mid[:, 1], corner[2], mid[:, 0], mid[:, 1], mid[:, 2]], axis=1).reshape(-1, 3)
+        vertices = np.vstack((vertices, vertices[edges[first]].mean(axis=1)))
+        norm = np.sqrt(np.dot(vertices**2, [1.0, 1.0, 1.0]))[:, None]
+        vertices = vertices + (vertices / norm) * (1.0 - norm)
+    return vertices, faces
 
 
 def _base_surface(directions: np.ndarray, p: dict[str, float]) -> np.ndarray:
