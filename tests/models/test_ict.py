@@ -227,6 +227,28 @@ def test_fetch_from_source_into_cache(ict_raw, tmp_path, monkeypatch):
     assert archive.stat().st_mtime_ns == stamp
 
 
+def test_the_release_is_recognised_and_a_different_one_warns(ict_raw, raw_copy, tmp_path, recwarn):
+    from facenormals.models.fetch import ict_release_differences
+
+    messages: list[str] = []
+    archive = fetch_ict(ict_raw, cache=tmp_path / "same", progress=messages.append)
+    assert ict_release_differences(archive) == [] and not recwarn.list
+    assert messages[-1].endswith("; the release facenormals was built with")
+    # an upstream change of one vertex (the first one is 0 -2.48251 11.8387 cm)
+    neutral = raw_copy / "generic_neutral_mesh.obj"
+    text = neutral.read_text()
+    neutral.write_text(text.replace("v 0 -2.48251 11.8387\n", "v 0 -2.48251 11.8388\n", 1))
+    with pytest.warns(UserWarning, match=r"differs from the release facenormals was built with \(mean changed\)"):
+        archive = fetch_ict(raw_copy.parent, cache=tmp_path / "other", progress=messages.append)
+    assert ict_release_differences(archive) == ["mean"] and messages[-1].endswith("; a different release")
+
+
+def test_the_shared_archive_is_the_release(ict_npz):
+    from facenormals.models.fetch import ict_release_differences
+
+    assert ict_release_differences(ict_npz) == []
+
+
 def test_fetch_force_rebuilds(ict_raw, tmp_path):
     archive = fetch_ict(ict_raw, cache=tmp_path, progress=None)  # the FaceXModel folder itself
     archive.write_bytes(b"stale")

@@ -7,8 +7,10 @@ or read from a local copy, and its ``FaceXModel/`` folder is converted into
 
 from __future__ import annotations
 
+import hashlib
 import http.client
 import urllib.error
+import warnings
 import urllib.request
 import zipfile
 from pathlib import Path, PurePosixPath
@@ -22,10 +24,23 @@ from facenormals.models.ict import ict_npz_from_raw
 from facenormals.models.morphable import ModelFileError
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
 
-__all__ = ["ICT_URL", "FetchError", "fetch_ict"]
+__all__ = ["ICT_URL", "FetchError", "fetch_ict", "ict_release_differences"]
 
-#: The zip of the repository's default branch, as GitHub serves it.
+#: The zip of the repository's default branch, as GitHub serves it. A branch, not a pinned commit,
+#: so the converted arrays are compared with :data:`ICT_RELEASE_SHA256` after every conversion.
 ICT_URL = "https://github.com/ICT-VGL/ICT-FaceKit/archive/refs/heads/master.zip"
+
+#: SHA-256 of the converted arrays (their bytes as written by ``ict_npz_from_raw``) of the release
+#: facenormals was built and measured with: the landmark vertices, the network's training data and the
+#: accuracy tables depend on it. The bases are compared only when complete (100 and 53 modes).
+ICT_RELEASE_SHA256 = {
+    "mean": "1d320cada1f95df4a519624edab4e8597e50545b084484264ceddd7711e25b40",
+    "faces": "e0c4c47a7dd1954ff06e101f5b9c7ca7a392e9ec2f38e798d6cc1f0edf0ded6a",
+    "landmarks_ibug68": "56af14add570e48821553b669f10d250490f84b594bab0937aed7b7e1bcec0f6",
+    "identity_basis": "dc0de2b6bd03b82d3a61d82d4cfac04a2acf12c21c1578857d32129005d15bf4",
+    "expression_basis": "89629e8b199f81d21866925c5a4ab2c3c4c6b309fc1ea681f9b6cee0a9660334",
+}
+_COMPLETE_MODES = {"identity_basis": 100, "expression_basis": 53}
 FROM_HINT = "facenormals models fetch ict --from DIR"
 _CHUNK = 1 << 20
 
@@ -74,13 +89,45 @@ def _download(url: str, target: Path, timeout: float, progress: Callable[[str], 
         ) from error
 
 
-def _report_partial(archive: Path, progress: Callable[[str], object] | None) -> None:
+def ict_release_differences(archive: str | Path) -> list[str]:
+    """The arrays of a converted ICT-FaceKit archive that differ from the release facenormals uses.
+
+    Compares the SHA-256 of ``mean``, ``faces`` and ``landmarks_ibug68`` and, when complete, of the
+    identity and expression bases with :data:`ICT_RELEASE_SHA256`. An empty list means the archive
+    holds that release (or a partial copy of it).
+
+    Example:
+        >>> ict_release_differences("ict_face_head.npz")  # doctest: +SKIP
+        []
+    """
+    differences = []
+    with np.load(archive, allow_pickle=False) as data:
+        for key, digest in ICT_RELEASE_SHA256.items():
+            array = np.ascontiguousarray(data[key])
+            if key in _COMPLETE_MODES and array.shape[0] != _COMPLETE_MODES[key]:
+                continue
+            if hashlib.sha256(array.tobytes()).hexdigest() != digest:
+                differences.append(key)
+    return differences
+
+
+def _report(archive: Path, progress: Callable[[str], object] | None) -> None:
+    """Say what was written, and warn when it is not the release the package was made with."""
+    differences = ict_release_differences(archive)
+    if differences:
+        warnings.warn(
+            f"{archive}: this ICT-FaceKit differs from the release facenormals was built with "
+            f"({', '.join(differences)} changed): its landmark vertices, the shipped network and the "
+            f"documented accuracy may not hold for it",
+            stacklevel=3,
+        )
     if progress is None:
         return
     with np.load(archive, allow_pickle=False) as data:
         identities, expressions = data["identity_basis"].shape[0], data["expression_basis"].shape[0]
     note = "" if (identities, expressions) == (100, 53) else " (partial copy: the full model has 100 and 53)"
-    progress(f"wrote {archive}: {identities} identity modes, {expressions} expressions{note}")
+    release = "a different release" if differences else "the release facenormals was built with"
+    progress(f"wrote {archive}: {identities} identity modes, {expressions} expressions{note}; {release}")
 
 
 def fetch_ict(
@@ -109,6 +156,10 @@ def fetch_ict(
         force: rebuild the archive (and re-download the zip) even if cached.
         timeout: socket timeout of the download, seconds.
 
+    Warns:
+        UserWarning: if the converted arrays differ from the release facenormals was built with
+            (:func:`ict_release_differences`): the upstream repository changed its model.
+
     Raises:
         FetchError: if the download fails (no network, HTTP error, ...); the message names ``--from``.
             It is both a :class:`ModelFileError` and an :class:`OSError`.
@@ -123,7 +174,7 @@ def fetch_ict(
     if source is not None:
         say(f"converting ICT-FaceKit from {source}")
         ict_npz_from_raw(source, archive)
-        _report_partial(archive, progress)
+        _report(archive, progress)
         return archive
     zip_path = folder / _zip_name(url)
     if force or not zip_path.is_file():
@@ -139,5 +190,5 @@ def fetch_ict(
             f"{error}; delete {zip_path} (or pass force=True / --force) to download it again, "
             f"or run `{FROM_HINT}` with a local copy"
         ) from error
-    _report_partial(archive, progress)
+    _report(archive, progress)
     return archive
