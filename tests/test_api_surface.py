@@ -13,7 +13,7 @@ PUBLIC = {
     "facenormals.mesh": ["VertexNormals", "VertexNormalsJacobian", "load_mesh", "save_mesh", "vertex_normals",
                          "vertex_normals_jvp"],
     "facenormals.models": ["BUILTIN_PARAMETERS", "LANDMARK_NAMES", "LANDMARK_PAIRS", "ModelFileError",
-                           "MorphableModel", "builtin_head_model", "fetch_ict", "find_ict_archive", "load_bfm2009",
+                           "MorphableModel", "builtin_head_model", "fetch_ict", "find_ict_archive", "ict_release_differences", "load_bfm2009",
                            "load_bfm2017", "load_flame", "load_ict_npz", "load_ict_raw", "load_lyhm", "load_model"],
     "facenormals.sampling": ["sample_bicubic", "sample_bicubic_with_gradient"],
     "facenormals.render": ["Fragments", "draw_alignment", "interpolate_vertex_attributes", "normal_map_to_image", "rasterize_depth", "rasterize_triangles",
