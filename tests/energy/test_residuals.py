@@ -121,6 +121,7 @@ def test_normal_residuals_visible_none_and_weight_zero():
 def test_normal_residuals_masked_entries_have_zero_gradient():
     normal_map, pixels, normals, visible = random_case()
     # invisible vertices may carry garbage: NaN normals and NaN / inf pixels
+    visible[0, 0] = visible[1, 1] = False
     normals = torch.where(visible[..., None], normals, torch.full_like(normals, float("nan")))
     pixels[0, 0] = float("nan")
     pixels[1, 1, 0] = float("inf")
@@ -135,6 +136,23 @@ def test_normal_residuals_masked_entries_have_zero_gradient():
         assert torch.isfinite(x.grad).all()
     assert (pixels.grad[~valid] == 0).all() and (normals.grad[~valid] == 0).all()
     assert (pixels.grad[valid] != 0).any() and (normals.grad[valid] != 0).any()
+
+
+def test_normal_residuals_refuse_nan_where_a_vertex_counts():
+    # a NaN pixel would sample as "outside" and a NaN normal poison the energy: both are errors for
+    # a visible vertex (and for every vertex without a mask), never a silently dropped residual
+    normal_map, pixels, normals, visible = random_case()
+    visible[0, 3] = True
+    bad_pixels, bad_normals = pixels.clone(), normals.clone()
+    bad_pixels[0, 3, 1] = float("nan")
+    bad_normals[0, 3, 0] = float("inf")
+    with pytest.raises(ValueError, match="pixels: expected finite values, got 1 NaN"):
+        normal_residuals(normal_map, bad_pixels, normals, visible)
+    with pytest.raises(ValueError, match="normals: expected finite values"):
+        normal_residuals(normal_map, pixels, bad_normals)
+    visible[0, 3] = False
+    r, valid = normal_residuals(normal_map, bad_pixels, bad_normals, visible)
+    assert torch.isfinite(r).all() and not valid[0, 3]
 
 
 def test_normal_residuals_gradcheck():

@@ -92,6 +92,16 @@ def test_zero_depth_is_finite():
         ("rotation", torch.eye(3, dtype=torch.float64).expand(2, 3, 3),
          r"rotation: expected dtype torch.float32 \(the dtype of points\), got torch.float64"),
         ("intrinsics", torch.ones(2, 3, dtype=torch.float64), "intrinsics: expected dtype torch.float32"),
+        # a NaN gives NaN pixels that later ops read as "outside", and f <= 0 mirrors the image
+        ("points", torch.zeros(2, 5, 3).index_fill(1, torch.tensor([2]), float("nan")),
+         "points: expected finite values, got 6 NaN"),
+        ("rotation", torch.eye(3).repeat(2, 1, 1).index_fill(2, torch.tensor([0]), float("inf")),
+         "rotation: expected finite values"),
+        ("translation", torch.tensor([[0.0, 0.0, 500.0], [0.0, float("nan"), 500.0]]), "translation: expected finite"),
+        ("intrinsics", torch.tensor([[1.0, 1.0, 1.0], [float("nan"), 1.0, 1.0]]), "intrinsics: expected finite"),
+        ("intrinsics", torch.tensor([[1.0, 1.0, 1.0], [-1000.0, 64.0, 64.0]]),
+         r"intrinsics: expected focal lengths f > 0, got -1000"),
+        ("intrinsics", torch.tensor([[0.0, 64.0, 64.0], [1.0, 1.0, 1.0]]), r"f > 0, got 0"),
     ],
 )
 def test_bad_input(which, bad, match):
@@ -100,6 +110,11 @@ def test_bad_input(which, bad, match):
     args[which] = bad
     with pytest.raises(ValueError, match=match):
         project_points(**args)
+
+
+def test_transform_points_refuses_nan():
+    with pytest.raises(ValueError, match="translation: expected finite values"):
+        transform_points(torch.zeros(1, 2, 3), torch.eye(3)[None], torch.tensor([[0.0, float("nan"), 1.0]]))
 
 
 def test_compile_smoke():

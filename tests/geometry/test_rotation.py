@@ -73,6 +73,17 @@ def test_bad_angles(bad):
         euler_to_rotation_matrix(bad)
 
 
+def test_non_finite_angles_and_rotations_are_errors():
+    from facenormals.geometry import euler_rotation_derivatives
+
+    nan = torch.tensor([[0.0, float("nan"), 0.0]])
+    for op in (euler_to_rotation_matrix, euler_rotation_derivatives):
+        with pytest.raises(ValueError, match="angles: expected finite values, got 1 NaN"):
+            op(nan)
+    with pytest.raises(ValueError, match="rotation: expected finite values"):
+        rotation_matrix_to_euler(torch.eye(3)[None] * float("inf"))
+
+
 def test_bad_rotation():
     with pytest.raises(ValueError, match="rotation"):
         rotation_matrix_to_euler(torch.zeros(2, 3, 4))

@@ -278,6 +278,11 @@ def test_bad_inputs():
         vertex_normals(v, faces.bool())
     with pytest.raises(ValueError, match="mode: expected one of"):
         vertex_normals(v, faces, mode="angle")
+    for eps in (float("nan"), -1e-12, 0.0, "1e-12"):  # NaN made every normal NaN
+        with pytest.raises(ValueError, match="eps: expected a"):
+            vertex_normals(v, faces, eps=eps)
+        with pytest.raises(ValueError, match="eps: expected a"):
+            VertexNormals(faces, eps=eps)
     with pytest.raises(ValueError, match="mode: expected one of"):
         VertexNormals(faces, mode="Ring")
     with pytest.raises(ValueError, match="faces: expected an integer"):

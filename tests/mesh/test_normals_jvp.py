@@ -51,6 +51,10 @@ def test_float32_and_bad_input():
         vertex_normals_jvp(v[None], faces, torch.ones(2, 5, 3))
     with pytest.raises(ValueError, match="vertices"):
         vertex_normals_jvp(v, faces, torch.ones(2, *v.shape))
+    with pytest.raises(ValueError, match="eps: expected a finite number > 0, got 0"):
+        vertex_normals_jvp(v[None], faces, torch.ones(2, *v.shape), eps=0)
+    with pytest.raises(ValueError, match="eps: expected a finite number, got nan"):
+        VertexNormalsJacobian(faces, torch.ones(2, *v.shape), eps=float("nan"))
 
 
 def test_faces_and_vertex_count_are_checked():

@@ -364,6 +364,29 @@ def test_cholesky_fallback_gives_gauss_newton_step():
     assert torch.equal(result.x[:, 2], x0[:, 2])
 
 
+def test_a_non_finite_step_is_not_handed_to_the_residuals(monkeypatch):
+    # residual functions built from the library's ops refuse NaN inputs; a failed solve must be a
+    # rejected step, not a NaN trial point that makes them raise
+    residual, x0, _ = make_singular_problem()
+
+    def checked(x):
+        assert torch.isfinite(x).all(), "the solver evaluated a non-finite trial point"
+        return residual(x)
+
+    def broken_pinv(*args, **kwargs):
+        raise RuntimeError("linalg.pinv: the algorithm failed to converge")
+
+    monkeypatch.setattr(torch.linalg, "pinv", broken_pinv)
+    result = levenberg_marquardt(checked, x0, damping_mode="levenberg", damping=0.0, max_iterations=2)
+    assert torch.equal(result.x, x0) and (result.status != int(LMStatus.CONVERGED)).all()
+
+
+def test_integer_like_max_iterations_are_accepted():
+    x0 = torch.zeros(1, 2, dtype=F64)
+    for value in (np.int64(5), torch.tensor(5)):
+        assert levenberg_marquardt(rosenbrock, x0, max_iterations=value).iterations.max() <= 5
+
+
 def test_rank_deficient_duplicate_columns():
     gen = torch.Generator().manual_seed(4)
     A = torch.randn(3, 10, 4, generator=gen, dtype=F64)
@@ -587,6 +610,7 @@ def test_bad_jacobian_fn_raises(jacobian_fn):
         ("jacobian_mode", "central"),
         ("max_iterations", -1),
         ("max_iterations", 2.5),
+        ("max_iterations", "3"),
         ("damping", -1.0),
         ("ftol", math.nan),
         ("min_damping", 0.0),

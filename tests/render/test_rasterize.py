@@ -136,3 +136,17 @@ def test_depth_only_equals_full_rasteriser(cull):
     z = rasterize_depth(uv, depth, faces, (40, 45), cull_backfaces=cull)
     assert z.dtype == uv.dtype and torch.equal(z, full.depth)
     assert full.mask.sum() > 300 and torch.isinf(z[~full.mask]).all()
+
+
+def test_near_and_mixed_dtypes_are_checked():
+    uv = torch.tensor([[[0.0, 0.0], [9.0, 0.0], [0.0, 9.0]]])
+    faces = torch.tensor([[0, 1, 2]])
+    for near in (float("nan"), -1.0, "0.1"):  # NaN used to give an empty render
+        for op in (rasterize_triangles, rasterize_depth):
+            with pytest.raises(ValueError, match="near: expected a"):
+                op(uv, torch.ones(1, 3), faces, (10, 10), near=near)
+    # float64 depths used to come back rounded to float32
+    with pytest.raises(ValueError, match=r"depth: expected dtype torch.float32 \(the dtype of pixels\), got torch.float64"):
+        rasterize_depth(uv, torch.ones(1, 3, dtype=torch.float64), faces, (10, 10))
+    z = rasterize_depth(uv.double(), torch.full((1, 3), 1000.0001, dtype=torch.float64), faces, (10, 10))
+    assert z.dtype == torch.float64 and abs(z[0, 0, 0].item() - 1000.0001) < 1e-9

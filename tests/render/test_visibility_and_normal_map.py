@@ -6,7 +6,7 @@ import torch
 from facenormals.geometry import euler_to_rotation_matrix, project_points, transform_points
 from facenormals.mesh import vertex_normals
 from facenormals.models import builtin_head_model
-from facenormals.render import rasterize_triangles, render_normal_map, unoccluded_points, visible_vertices
+from facenormals.render import rasterize_depth, rasterize_triangles, render_normal_map, unoccluded_points, visible_vertices
 from facenormals.sampling import sample_bicubic
 
 
@@ -148,9 +148,13 @@ def test_nan_inputs_are_errors_not_background(posed_head):
         render_normal_map(vertices, model.faces, R, t, K, (32, 32), normals=torch.full_like(vertices, math.nan))
     with pytest.raises(ValueError, match="rotation: expected finite values"):
         render_normal_map(vertices, model.faces, R * math.nan, t, K, (32, 32))
-    pixels, depth = project_points(bad, R, t, K)
+    with pytest.raises(ValueError, match="points: expected finite values, got 3 NaN"):
+        project_points(bad, R, t, K)
+    pixels, depth = project_points(vertices, R, t, K)
     with pytest.raises(ValueError, match="pixels: expected finite values"):
-        rasterize_triangles(pixels, depth, model.faces, (32, 32))
+        rasterize_triangles(pixels.index_fill(1, torch.tensor([10]), math.nan), depth, model.faces, (32, 32))
+    with pytest.raises(ValueError, match="depth: expected finite values"):
+        rasterize_depth(pixels, depth.index_fill(1, torch.tensor([10]), math.inf), model.faces, (32, 32))
     pixels, depth = project_points(vertices, R, t, K)
     camera = transform_points(vertices, R, t)
     normals = vertex_normals(vertices, model.faces) @ R.transpose(1, 2)

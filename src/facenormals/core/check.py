@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "check_all_finite",
     "check_faces",
     "check_finite",
     "check_floating",
@@ -198,6 +199,25 @@ def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
     if not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).sum())
         raise ValueError(f"{name}: expected finite values, got {bad} NaN or infinite entries")
+
+
+def check_all_finite(**tensors: Tensor) -> None:
+    """:func:`check_finite` for several named tensors with one device synchronisation: the error
+    names the first tensor, in argument order, that holds NaN or infinite values.
+
+    Example:
+        >>> check_all_finite(points=torch.zeros(1, 2, 3), angles=torch.tensor([[0.0, float("nan"), 0.0]]))
+        Traceback (most recent call last):
+        ...
+        ValueError: angles: expected finite values, got 1 NaN or infinite entries
+    """
+    if torch.compiler.is_compiling() or not tensors:
+        return
+    devices = {x.device for x in tensors.values()}
+    if len(devices) == 1 and bool(torch.stack([torch.isfinite(x).all() for x in tensors.values()]).all()):
+        return
+    for name, x in tensors.items():
+        check_finite(x, name)
 
 
 def check_nonnegative(value: object, name: str) -> float:

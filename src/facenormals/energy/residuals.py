@@ -21,7 +21,7 @@ import math
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_same_dtype_device, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_nonnegative, check_same_dtype_device, check_shape
 from facenormals.sampling.bicubic import sample_bicubic
 
 __all__ = ["landmark_residuals", "normal_residuals", "prior_residuals"]
@@ -93,8 +93,8 @@ def normal_residuals(
 
     Raises:
         ValueError: on wrong shapes, mismatched batch or vertex counts, non-floating inputs,
-            mismatched dtypes, a non-bool ``visible``, a negative ``weight`` or a non-finite
-            ``normal_map``.
+            mismatched dtypes, a non-bool ``visible``, a negative ``weight``, a non-finite
+            ``normal_map``, or non-finite ``pixels`` or ``normals`` of vertices marked visible.
 
     Shape:
         - normal_map: :math:`(B, 3, H, W)`
@@ -122,8 +122,11 @@ def normal_residuals(
     for name, x in (("normal_map", normal_map), ("pixels", pixels), ("normals", normals)):
         check_floating(x, name)
     check_same_dtype_device(normal_map, "normal_map", pixels=pixels, normals=normals)
-    check_finite(normal_map, "normal_map")  # a NaN would read as background and its vertices drop out silently
     _check_mask(visible, "visible", dims, "N", normal_map.device)
+    # a NaN would read as background, or a NaN pixel as outside, and the vertices drop out silently;
+    # vertices marked invisible may carry anything
+    used = (lambda x: x) if visible is None else (lambda x: x.masked_fill(~visible[..., None], 0.0))
+    check_all_finite(normal_map=normal_map, pixels=used(pixels.detach()), normals=used(normals.detach()))
     scale = math.sqrt(check_nonnegative(weight, "weight"))
 
     sampled, inside = sample_bicubic(normal_map, pixels)

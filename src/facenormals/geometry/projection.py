@@ -5,19 +5,22 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_same_dtype_device, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_same_dtype_device, check_shape
 
 __all__ = ["project_points", "projection_jacobian", "transform_points"]
 
 _HALF = (torch.float16, torch.bfloat16)
 
 
-def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor) -> dict[str, int]:
+def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor, **intrinsics: Tensor) -> dict[str, int]:
     dims = check_shape(points, ["B", "N", 3], "points")
     check_shape(rotation, ["B", 3, 3], "rotation", dims)
     check_shape(translation, ["B", 3], "translation", dims)
+    for name, x in intrinsics.items():
+        check_shape(x, ["B", 3], name, dims)
     check_floating(points, "points")
-    check_same_dtype_device(points, "points", rotation=rotation, translation=translation)
+    check_same_dtype_device(points, "points", rotation=rotation, translation=translation, **intrinsics)
+    check_all_finite(points=points, rotation=rotation, translation=translation, **intrinsics)
     return dims
 
 
@@ -74,7 +77,8 @@ def project_points(
         ``(pixels, depth)``: the pixel coordinates ``(u, v)`` and the camera-frame depth ``z``.
 
     Raises:
-        ValueError: on wrong shapes, mismatched batch sizes or non-floating inputs.
+        ValueError: on wrong shapes, mismatched batch sizes, non-floating or non-finite inputs, or a
+            focal length ``f <= 0``.
 
     Shape:
         - points: :math:`(B, N, 3)`
@@ -91,9 +95,9 @@ def project_points(
         >>> uv, z
         (tensor([[[84., 24.]]]), tensor([[500.]]))
     """
-    dims = _check_pose(points, rotation, translation)
-    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
-    check_same_dtype_device(points, "points", intrinsics=intrinsics)
+    _check_pose(points, rotation, translation, intrinsics=intrinsics)
+    if not torch.compiler.is_compiling() and not bool((intrinsics[:, 0] > 0).all()):
+        raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")
     if points.dtype in _HALF:  # f·x overflows float16 at ~65k (f = 1000 px, x = 66 mm); exact in float32
         pixels, z = project_points(points.float(), rotation.float(), translation.float(), intrinsics.float(), eps)
         return pixels.to(points.dtype), z.to(points.dtype)

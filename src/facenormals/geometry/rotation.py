@@ -18,7 +18,7 @@ import math
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape
 
 __all__ = ["euler_rotation_derivatives", "euler_to_rotation_matrix", "rotation_matrix_to_euler"]
 
@@ -37,7 +37,7 @@ def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
         The rotation matrices.
 
     Raises:
-        ValueError: if ``angles`` is not a floating tensor of shape ``(B, 3)``.
+        ValueError: if ``angles`` is not a floating tensor of shape ``(B, 3)`` with finite values.
 
     Shape:
         - angles: :math:`(B, 3)`
@@ -52,6 +52,7 @@ def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
     """
     check_shape(angles, ["B", 3], "angles")
     check_floating(angles, "angles")
+    check_finite(angles, "angles")
     roll, pitch, yaw = angles.unbind(-1)
     cr, sr = torch.cos(roll), torch.sin(roll)
     cp, sp = torch.cos(pitch), torch.sin(pitch)
@@ -106,6 +107,7 @@ def euler_rotation_derivatives(angles: Tensor) -> Tensor:
     """
     check_shape(angles, ["B", 3], "angles")
     check_floating(angles, "angles")
+    check_finite(angles, "angles")
     roll, pitch, yaw = angles.unbind(-1)
     rz, rx, ry = _elementary(roll, 2, False), _elementary(pitch, 0, False), _elementary(yaw, 1, False)
     drz, drx, dry = _elementary(roll, 2, True), _elementary(pitch, 0, True), _elementary(yaw, 1, True)
@@ -126,7 +128,7 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
         Angles in radians.
 
     Raises:
-        ValueError: if ``rotation`` is not a floating tensor of shape ``(B, 3, 3)``.
+        ValueError: if ``rotation`` is not a floating tensor of shape ``(B, 3, 3)`` with finite values.
 
     Shape:
         - rotation: :math:`(B, 3, 3)`
@@ -139,6 +141,7 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
     """
     check_shape(rotation, ["B", 3, 3], "rotation")
     check_floating(rotation, "rotation")
+    check_finite(rotation, "rotation")
     r10, r11, r12 = rotation[:, 1, 0], rotation[:, 1, 1], rotation[:, 1, 2]
     pitch = torch.atan2(-r12, torch.sqrt(r10 * r10 + r11 * r11))
     roll = torch.atan2(r10, r11)

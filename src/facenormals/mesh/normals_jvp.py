@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from facenormals.core.check import check_faces, check_floating, check_shape, check_tensor
+from facenormals.mesh.normals import _check_eps
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -139,7 +140,7 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
     else:
         edges = [_tangent_edges(t, faces) for t in tangents]
         d_e1, d_e2 = torch.stack([e[0] for e in edges]), torch.stack([e[1] for e in edges])
-    return _jvp(vertices, faces, d_e1, d_e2, eps)
+    return _jvp(vertices, faces, d_e1, d_e2, _check_eps(eps))
 
 
 class _SubsetJacobian:
@@ -195,7 +196,7 @@ class VertexNormalsJacobian(nn.Module):
         check_faces(faces, dims["N"])
         faces = faces.to(torch.long)
         d_e1, d_e2 = _tangent_edges(basis, faces)
-        self.eps = eps
+        self.eps = _check_eps(eps)
         self.num_vertices = dims["N"]
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("d_e1", d_e1.contiguous(), persistent=False)

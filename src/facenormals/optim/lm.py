@@ -151,8 +151,7 @@ def _check_options(
     max_damping: float,
     jacobian_mode: str,
 ) -> None:
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 0:
-        raise ValueError(f"max_iterations: expected an integer >= 0, got {max_iterations!r}")
+    check_integer(max_iterations, "max_iterations", minimum=0)
     if damping_mode not in ("marquardt", "levenberg"):
         raise ValueError(f"damping_mode: expected 'marquardt' or 'levenberg', got {damping_mode!r}")
     if jacobian_mode not in ("forward", "reverse"):
@@ -487,7 +486,9 @@ def _solve(
             pred = pred.index_copy(0, idx, pred_bad)
         step = torch.where(act, step, 0.0)
 
-        x_trial = x + step
+        # A non-finite step is rejected below; the residuals are evaluated at x instead, so that
+        # residual functions that check their inputs (the library's ops do) never see NaN.
+        x_trial = torch.where(torch.isfinite(step).all(-1, keepdim=True), x + step, x)
         if active_subset:  # the others keep their residuals (their trial is discarded anyway)
             index = active.nonzero().squeeze(1)
             r_trial = r.index_copy(0, index, residuals(x_trial, index))

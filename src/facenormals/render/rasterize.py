@@ -12,7 +12,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_faces, check_finite, check_floating, check_image_size, check_shape
+from facenormals.core.check import (
+    check_all_finite,
+    check_faces,
+    check_floating,
+    check_image_size,
+    check_nonnegative,
+    check_same_dtype_device,
+    check_shape,
+)
 
 __all__ = ["Fragments", "interpolate_vertex_attributes", "rasterize_depth", "rasterize_triangles"]
 
@@ -48,16 +56,16 @@ def _bucket_sizes(extent: Tensor) -> list[int]:
         size *= 2
 
 
-def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_size: tuple[int, int]) -> tuple[int, int, int]:
+def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_size: tuple[int, int],
+                         near: float) -> tuple[int, int, int, float]:
     dims = check_shape(pixels, ["B", "N", 2], "pixels")
     check_shape(depth, ["B", "N"], "depth", dims)
     check_faces(faces, dims["N"])
     check_floating(pixels, "pixels")
-    check_floating(depth, "depth")
-    check_finite(pixels, "pixels")  # a NaN triangle would silently leave a hole
-    check_finite(depth, "depth")
+    check_same_dtype_device(pixels, "pixels", depth=depth)  # the z-buffer comes back in this dtype
+    check_all_finite(pixels=pixels, depth=depth)  # a NaN triangle would silently leave a hole
     height, width = check_image_size(image_size)
-    return dims["B"], height, width
+    return dims["B"], height, width, check_nonnegative(near, "near")
 
 
 def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, height: int, width: int,
@@ -142,7 +150,7 @@ def rasterize_triangles(
         >>> int(frags.mask.sum())  # pixel centres with u + v <= 9
         55
     """
-    batch, height, width = _check_raster_inputs(pixels, depth, faces, image_size)
+    batch, height, width, near = _check_raster_inputs(pixels, depth, faces, image_size, near)
     num_pixels = batch * height * width
     work, device = torch.float64, pixels.device
     zbuf = torch.full((num_pixels,), float("inf"), dtype=work, device=device)
@@ -187,7 +195,7 @@ def rasterize_depth(
         >>> z[0, 0, 0].item(), z[0, 0, 9].item(), z[0, 9, 9].item()
         (1.0, 2.0, inf)
     """
-    batch, height, width = _check_raster_inputs(pixels, depth, faces, image_size)
+    batch, height, width, near = _check_raster_inputs(pixels, depth, faces, image_size, near)
     zbuf = torch.full((batch * height * width,), float("inf"), dtype=torch.float64, device=pixels.device)
     for pix, _, z, _ in _covered_pixels(pixels, depth, faces, batch, height, width, cull_backfaces, near, False):
         zbuf.scatter_reduce_(0, pix, z, reduce="amin")
