@@ -144,6 +144,70 @@ def test_bad_input(model, head):
         fit_head(obs.normal_maps, obs.landmarks, model, weights=FitWeights(focal_std=0))
 
 
+def test_options_that_silently_dropped_the_normal_term_are_errors(model, head):
+    # each of these used to fit a landmarks-only head (1 vertex or none in the normal term) and
+    # report CONVERGED
+    obs = render_oracle_views(model, head, [0.0], image_size=32)
+    for spacing, shown in ((float("nan"), "nan"), (float("inf"), "inf"), ((3.0, float("nan")), r"\(3.0, nan\)"),
+                           (0.0, "0.0"), ("3", "'3'")):
+        with pytest.raises(ValueError, match=rf"vertex_spacing: expected finite spacings > 0 in pixels or None, got {shown}"):
+            fit_head(obs.normal_maps, obs.landmarks, model, vertex_spacing=spacing)
+    for facing, match in ((1.0, r"min_facing: expected a value in \[-1, 1\), got 1.0"),
+                          (float("nan"), "min_facing: expected a finite number")):
+        with pytest.raises(ValueError, match=match):
+            fit_head(obs.normal_maps, obs.landmarks, model, min_facing=facing)
+
+
+@pytest.mark.parametrize("encode, match", [
+    (lambda n, fg: n * 255, "holds normals of median length 255 where unit .*0-255 or encoded as colours"),
+    (lambda n, fg: (n + 1) / 2 * fg, "holds normals of median length 0.85.*0-255 or encoded as colours"),
+    (lambda n, fg: n * torch.tensor([1.0, -1.0, -1.0])[:, None, None], "0 % of its normals facing the camera.*OpenGL"),
+])
+def test_normal_maps_in_another_encoding_are_refused(model, head, encode, match):
+    # each fitted without error to a head near the mean (1.9 mm, or 4.5 mm for the OpenGL frame)
+    obs = render_oracle_views(model, head, [0.0, 30.0], image_size=32)
+    maps = obs.normal_maps.clone()
+    fg = maps[0, 1].norm(dim=0, keepdim=True) > 0.5
+    maps[0, 1] = encode(maps[0, 1], fg)
+    with pytest.raises(ValueError, match="normal_maps: view 1 (has only )?" + match):
+        fit_head(maps, obs.landmarks, model, intrinsics=obs.intrinsics)
+
+
+def test_wrong_argument_types_are_named(model, head):
+    obs = render_oracle_views(model, head, [0.0], image_size=32)
+    cases = [
+        (dict(weights={"normals": 1.0}), "weights: expected a FitWeights, got dict"),
+        (dict(model="builtin"), r"model: expected a MorphableModel \(e.g. facenormals.load_model\('builtin'\)"),
+        (dict(initial_pose=obs.angles), "initial_pose: expected a pair"),
+        (dict(jacobian_dtype=torch.float16), "jacobian_dtype: expected None, torch.float32 or torch.float64"),
+    ]
+    for kwargs, match in cases:
+        args = {"normal_maps": obs.normal_maps, "landmarks": obs.landmarks, "model": model, **kwargs}
+        with pytest.raises(ValueError, match=match):
+            fit_head(**args)
+
+
+def test_a_given_pose_still_needs_something_in_every_view(model, head):
+    obs = render_oracle_views(model, head, [0.0, 40.0], image_size=32)
+    maps, marks = obs.normal_maps.clone(), obs.landmarks.clone()
+    maps[0, 1], marks[0, 1] = 0.0, float("nan")
+    with pytest.raises(ValueError, match="view 1 has neither a face in its normal map nor a landmark"):
+        fit_head(maps, marks, model, intrinsics=obs.intrinsics, initial_pose=(obs.angles, obs.translation))
+
+
+def test_a_model_without_landmarks_fits_from_a_given_pose(model, head):
+    # the fit from a given pose needs no landmarks: it crashed on reshaping 0 landmarks, and the
+    # pixel size (for the vertex subset) was NaN, which kept a single vertex
+    from facenormals.models import MorphableModel
+
+    bare = MorphableModel(model.mean, model.shape_basis, model.faces, shape_std=model.shape_std, name="bare")
+    obs = render_oracle_views(model, head, [0.0], image_size=48)
+    fit = fit_head(obs.normal_maps, torch.zeros(1, 1, 0, 2), bare, intrinsics=obs.intrinsics,
+                   initial_pose=(obs.angles, obs.translation))
+    assert int(fit.visible.sum()) > 100 and float(fit.energies["normals"]) > 0
+    assert p2p(model, fit.vertices[0], obs.vertices[0]) < 0.7 * p2p(model, model.mean, obs.vertices[0])
+
+
 def test_reported_energies_are_the_weighted_terms(model, head):
     """With plain least squares over every visible vertex, the energies are λ times the paper's terms."""
     obs = render_oracle_views(model, head, [10.0], image_size=64)

@@ -147,6 +147,14 @@ def test_problem_checks_its_inputs():
             HeadFitProblem(model, *bad)
     with pytest.raises(ValueError, match=r"view_weights: expected finite values >= 0"):
         HeadFitProblem(model, *args, view_weights=-torch.ones(1, 1))
+    nan_map = obs.normal_maps.clone()
+    nan_map[0, 0, 2, 5, 5] = float("nan")
+    with pytest.raises(ValueError, match="normal_maps: expected finite values, got 1 NaN"):
+        HeadFitProblem(model, nan_map, *args[1:])
+    nan_landmarks = obs.landmarks.clone()
+    nan_landmarks[0, 0, 3] = float("nan")  # marked present: it counts as missing instead of poisoning the energy
+    problem = HeadFitProblem(model, obs.normal_maps, nan_landmarks, torch.ones_like(obs.landmark_mask), obs.intrinsics)
+    assert not bool(problem.landmark_mask[0, 0, 3])
     with pytest.raises(ValueError, match=r"vertex_subset: expected a bool tensor of shape \(N,\) or \(B, N\)"):
         HeadFitProblem(model, *args, vertex_subset=torch.ones(5, dtype=torch.bool))
 

@@ -16,7 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_integer, check_shape, check_tensor
+from facenormals.core.check import check_finite, check_floating, check_integer, check_real, check_shape, check_tensor
 from facenormals.fitting.pose import prealign_pose, require_pose_landmarks
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
@@ -113,10 +113,50 @@ def _as_views(x: Tensor, name: str, tail: list, views: dict[str, int] | None = N
 def _pixel_sizes(model: MorphableModel, angles: Tensor, translation: Tensor, intrinsics: Tensor) -> list[float]:
     """Per subject, the median size of a pixel in mm at the depth of the mean head's landmarks over its views."""
     B, V = angles.shape[:2]
-    centre = model.mean[model.landmark_indices].mean(0)
+    points = model.mean[model.landmark_indices] if model.landmark_indices.numel() else model.mean
+    centre = points.mean(0)
     R = euler_to_rotation_matrix(angles.reshape(-1, 3))
     depth = (R @ (centre + translation.reshape(-1, 3))[..., None])[:, 2, 0]
     return (depth / intrinsics.reshape(-1, 3)[:, 0]).reshape(B, V).median(dim=1).values.tolist()
+
+
+def _check_spacings(vertex_spacing: object) -> list[float | None]:
+    """``vertex_spacing`` as a list of finite spacings > 0 or ``None`` (a NaN spacing kept one vertex)."""
+    spacings = list(vertex_spacing) if isinstance(vertex_spacing, Sequence) and not isinstance(vertex_spacing, str) \
+        else [vertex_spacing]
+    if not spacings:
+        raise ValueError("vertex_spacing: expected a spacing, a non-empty sequence of spacings or None, got []")
+    for spacing in spacings:
+        if spacing is not None and not (isinstance(spacing, (int, float)) and not isinstance(spacing, bool)
+                                         and math.isfinite(spacing) and spacing > 0):
+            raise ValueError(f"vertex_spacing: expected finite spacings > 0 in pixels or None, got {vertex_spacing!r}")
+    return spacings
+
+
+def _check_normal_maps_encoding(normal_maps: Tensor, foreground: Tensor) -> None:
+    """Refuse maps that are not unit camera-frame normals: scaled (0-255), encoded as colours
+    ((n + 1) / 2) or in an OpenGL frame (z towards the viewer). Such maps fit without error to a
+    head near the mean; the message names the view."""
+    B, V = normal_maps.shape[:2]
+    for b in range(B):
+        for v in range(V):
+            mask = foreground[b, v]
+            if not bool(mask.any()):
+                continue
+            n = normal_maps[b, v][:, mask]  # (3, pixels)
+            where = f"view {v}{f' of subject {b}' if B > 1 else ''}"
+            length = float(n.norm(dim=0).median())
+            if abs(length - 1.0) > 0.1:
+                raise ValueError(
+                    f"normal_maps: {where} holds normals of median length {length:.3g} where unit normals are "
+                    "expected (a map scaled to 0-255 or encoded as colours (n + 1) / 2? decode it to unit "
+                    "vectors, zero on background; docs/conventions.md)")
+            facing = float((n[2] < 0).to(n.dtype).mean())
+            if facing < 0.5:
+                raise ValueError(
+                    f"normal_maps: {where} has only {100 * facing:.0f} % of its normals facing the camera "
+                    "(z < 0 in OpenCV's frame: x right, y down, z forward); a map in an OpenGL frame "
+                    "(y up, z towards the viewer) needs its y and z negated (docs/conventions.md)")
 
 
 def fit_head(
@@ -193,9 +233,11 @@ def fit_head(
         A :class:`FitResult`.
 
     Raises:
-        ValueError: on bad shapes, NaN normal maps or initial pose, ``fit_expression`` with a model
-            without expressions, or a view with fewer than 4 visible landmarks (the message names
-            the view).
+        ValueError: on bad shapes or types, NaN normal maps or initial pose, normal maps that are not
+            unit camera-frame normals (scaled, colour-encoded or in an OpenGL frame), ``fit_expression``
+            with a model without expressions, a view with fewer than 4 visible landmarks (with
+            ``initial_pose``: a view with neither a face in its map nor a landmark); the message names
+            the view.
     """
     import time
 
@@ -205,8 +247,20 @@ def fit_head(
     visibility_rounds = check_integer(visibility_rounds, "visibility_rounds", minimum=1)
     check_scale("robust_scale", robust_scale)
     check_scale("landmark_robust_scale", landmark_robust_scale)
-    if isinstance(vertex_spacing, Sequence) and len(vertex_spacing) == 0:
-        raise ValueError("vertex_spacing: expected a spacing, a non-empty sequence of spacings or None, got []")
+    spacings = _check_spacings(vertex_spacing)
+    min_facing = check_real(min_facing, "min_facing")
+    if not -1.0 <= min_facing < 1.0:  # 1 or more leaves no vertex for the normal term
+        raise ValueError(f"min_facing: expected a value in [-1, 1), got {min_facing!r}")
+    if not isinstance(model, MorphableModel):
+        raise ValueError(f"model: expected a MorphableModel (e.g. facenormals.load_model({model!r}) for a name or "
+                         f"path), got {type(model).__name__}")
+    if not isinstance(weights, FitWeights):
+        raise ValueError(f"weights: expected a FitWeights, got {type(weights).__name__}")
+    if jacobian_dtype not in (None, torch.float32, torch.float64):
+        raise ValueError(f"jacobian_dtype: expected None, torch.float32 or torch.float64, got {jacobian_dtype!r}")
+    if initial_pose is not None and not (isinstance(initial_pose, (tuple, list)) and len(initial_pose) == 2):
+        raise ValueError("initial_pose: expected a pair (angles, translation) of (V, 3) or (B, V, 3) tensors, "
+                         f"got {type(initial_pose).__name__}")
     if fit_expression and model.num_expressions == 0:
         raise ValueError(f"fit_expression: model {model.name!r} has no expression basis to fit")
     model.check_millimetres()
@@ -242,6 +296,7 @@ def fit_head(
         raise ValueError(f"landmark_mask: expected a bool tensor, got dtype {landmark_mask.dtype}")
     landmark_mask = landmark_mask & torch.isfinite(landmarks).all(-1)
     foreground = normal_maps.norm(dim=2) > 0.5
+    _check_normal_maps_encoding(normal_maps, foreground)
     view_weights = (foreground.flatten(2).sum(-1) > 0).to(dtype)  # no face in the map: landmarks only
 
     # 1. Pre-alignment: the mean head's landmarks, per view.
@@ -263,10 +318,14 @@ def fit_head(
         check_finite(angles, "initial_pose angles")
         check_finite(translation, "initial_pose translation")
         pre_rms = torch.full((B, V), float("nan"), dtype=dtype, device=device)
+        empty = (view_weights == 0) & ~landmark_mask.any(-1)
+        if bool(empty.any()):
+            b, v = (int(i) for i in empty.nonzero()[0])
+            raise ValueError(f"normal_maps, landmarks: view {v}{f' of subject {b}' if B > 1 else ''} has neither a "
+                             "face in its normal map nor a landmark; nothing in it constrains the fit")
     t_pre = time.perf_counter()
 
     # 2. Rounds of visibility + LM.
-    spacings = list(vertex_spacing) if isinstance(vertex_spacing, Sequence) else [vertex_spacing]
     # Per subject, so that a batch fits each subject exactly as alone.
     pixels = _pixel_sizes(model, angles, translation, intrinsics)
     subsets = {s: None if s is None else torch.stack([grid_subset(model.mean, s * p) for p in pixels]) for s in spacings}
@@ -303,6 +362,8 @@ def fit_head(
     if fit_intrinsics:
         energies["intrinsics_prior"] = 0.5 * extra.pop(0).square().sum(1)
     lm_errors = problem.landmark_errors(x)
+    if lm_errors.shape[-1] == 0:  # a model without landmarks (fitted from a given pose)
+        lm_errors = lm_errors.new_full((*lm_errors.shape[:-1], 1), float("nan"))
     lm_rms = lm_errors.square().nanmean(-1).sqrt()
     return FitResult(
         vertices=problem.vertices(x),

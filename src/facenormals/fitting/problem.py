@@ -36,7 +36,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_shape
 from facenormals.energy import landmark_residuals, prior_residuals
 from facenormals.energy.residuals import _foreground as map_foreground
 from facenormals.fitting.rings import RingRows, Rings
@@ -112,7 +112,7 @@ class HeadFitProblem:
         model: the morphable model (its dtype is the problem's dtype).
         normal_maps: ``(B, V, 3, H, W)`` camera-frame normal maps, zero on background.
         landmarks: ``(B, V, L, 2)`` detected landmarks of the model's landmark list, pixels.
-        landmark_mask: ``(B, V, L)`` which landmarks are present.
+        landmark_mask: ``(B, V, L)`` which landmarks are present (a non-finite landmark counts as absent).
         intrinsics_prior: ``(B, V, 3)`` prior ``(f, u0, v0)``; also the fixed intrinsics when they
             are not fitted.
         weights: the :class:`FitWeights`.
@@ -146,6 +146,9 @@ class HeadFitProblem:
         if landmark_mask.dtype != torch.bool:
             raise ValueError(f"landmark_mask: expected a bool tensor, got dtype {landmark_mask.dtype}")
         check_shape(intrinsics_prior, ["B", "V", 3], "intrinsics_prior", views)
+        # NaN maps would read as background and NaN landmarks as zero-cost: name them instead
+        check_all_finite(normal_maps=normal_maps, intrinsics_prior=intrinsics_prior)
+        landmark_mask = landmark_mask & torch.isfinite(landmarks).all(-1)  # NaN marks a missing landmark
         if view_weights is not None:
             check_shape(view_weights, ["B", "V"], "view_weights", views)
             if not bool((torch.isfinite(view_weights) & (view_weights >= 0)).all()):
@@ -344,7 +347,7 @@ class HeadFitProblem:
     def landmark_errors(self, x: Tensor) -> Tensor:
         """Pixel distance of each projected model landmark to its detection ``(B, V, L)``, NaN where absent."""
         g = self._geometry(x, None)
-        error = (g.lm_uv - self.landmarks.reshape(-1, self.L, 2)).norm(dim=-1).reshape(self.B, self.V, self.L)
+        error = (g.lm_uv - self.landmarks.reshape(self.B * self.V, self.L, 2)).norm(dim=-1).reshape(self.B, self.V, self.L)
         return torch.where(self.landmark_mask, error, torch.nan)
 
     # ------------------------------------------------------------------------------------------
@@ -404,7 +407,7 @@ class HeadFitProblem:
         uv, _ = project_points(flat[layout.vertex.reshape(-1, S)], R, t, K)
         maps = self._pick(self.normal_maps, index).reshape(-1, 3, self.H, self.W)
         sampled, grad, inside = sample_bicubic_with_gradient(maps, uv)
-        lm = verts[:, None, self.lm_index].expand(-1, self.V, -1, -1).reshape(-1, self.L, 3)
+        lm = verts[:, None, self.lm_index].expand(-1, self.V, -1, -1).reshape(verts.shape[0] * self.V, self.L, 3)
         lm_uv, _ = project_points(lm, R, t, K)
         geometry = _Geometry(x.clone(), key, layout, p, verts, R, t, K, n_model, sampled, grad,
                              inside & map_foreground(maps, uv), lm, lm_uv)
@@ -423,9 +426,10 @@ class HeadFitProblem:
         count, S = x.shape[0], self.vis_index.shape[-1]
         n_cam = g.n_model @ g.R.transpose(1, 2)
         r_n = torch.where(g.valid[..., None], g.sampled - n_cam, 0.0) * self._row_weights(index)[..., None]
-        r_z = landmark_residuals(g.lm_uv, self._pick(self.landmarks, index).reshape(-1, self.L, 2),
-                                 self._pick(self.landmark_mask, index).reshape(-1, self.L), weight=self.weights.landmarks)
-        r_z = r_z * self._pick(self.landmark_weights, index).reshape(-1, self.L, 1).sqrt()
+        views = count * self.V  # explicit sizes: a model may have no landmarks (L = 0)
+        r_z = landmark_residuals(g.lm_uv, self._pick(self.landmarks, index).reshape(views, self.L, 2),
+                                 self._pick(self.landmark_mask, index).reshape(views, self.L), weight=self.weights.landmarks)
+        r_z = r_z * self._pick(self.landmark_weights, index).reshape(views, self.L, 1).sqrt()
         priors = self._prior_rows(g.p, index)
         if flat:
             return [r_n.reshape(count, -1), r_z.reshape(count, -1)] + priors
@@ -479,7 +483,7 @@ class HeadFitProblem:
         PR_lm, A_lm = self._view_columns(g.landmark_points + t[:, None], R, D, g.K)
         mask = self._pick(self.landmark_mask, index).to(x.dtype)
         lm_scale = self.weights.landmarks * mask * self._pick(self.landmark_weights, index)
-        lm_scale = lm_scale.sqrt().reshape(-1, L, 1, 1).to(x.dtype)
+        lm_scale = lm_scale.sqrt().reshape(count * V, L, 1, 1).to(x.dtype)
         J_lm = ((PR_lm * lm_scale) @ self.basis_landmarks).view(count, V, 2 * L, C)
         A_lm = (A_lm * lm_scale).view(count, V, 2 * L, pv)
         small = torch.zeros(count, V * 2 * L, self.P, dtype=dtype, device=x.device)
