@@ -33,10 +33,18 @@ def test_sub_pixel_peaks_round_trip(sigma):
     assert float((peaks - points).norm(dim=-1)[visible].max()) < 1e-3
 
 
-def test_border_landmark():
-    maps = landmark_maps(torch.tensor([[[0.2, 127.0]]]), None, (128, 128))
+@pytest.mark.parametrize("u, v", [(0.2, 127.0), (0.3, 5.5), (0.49, 30.6), (-0.3, 31.4), (31.4, -0.2), (12.7, 31.45)])
+def test_border_landmark_keeps_its_sub_pixel_position(u, v):
+    # the refinement used to stop at the first and last row and column: up to 0.5 px of bias there
+    size = 128 if v > 100 else 32
+    maps = landmark_maps(torch.tensor([[[u, v]]], dtype=torch.float64), None, (size, size))
     peaks, found = landmarks_from_maps(maps)
-    assert bool(found) and float((peaks[0, 0] - torch.tensor([0.2, 127.0])).norm()) <= 0.5
+    assert bool(found) and float((peaks[0, 0] - torch.tensor([u, v], dtype=torch.float64)).norm()) < 1e-6
+
+
+def test_two_pixel_maps_keep_the_peak_pixel():
+    peaks, found = landmarks_from_maps(torch.tensor([[[[0.2, 0.9], [0.1, 0.3]]]]))
+    assert bool(found) and peaks[0, 0].tolist() == [1.0, 0.0]
 
 
 def test_bad_inputs():

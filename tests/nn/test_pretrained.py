@@ -62,6 +62,14 @@ def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
         torch.save({**good, **change}, path)
         with pytest.raises(ValueError, match=f"w.pt: the weight file's {match}"):
             load_weights(path)
+    # a NaN threshold detected nothing, silently; a string failed in the middle of a reconstruction
+    for threshold, match in ((float("nan"), "got nan"), ("abc", "got 'abc'"), (1.5, "got 1.5"),
+                             ([0.5] * 3, r"one threshold per landmark channel \(24\), got 3")):
+        torch.save({**good, "metadata": {"landmark_threshold": threshold}}, path)
+        with pytest.raises(ValueError, match=f"w.pt: metadata landmark_threshold: expected .*{match}"):
+            load_weights(path)
+    torch.save({**good, "metadata": {"landmark_threshold": [0.5] * 24}}, path)
+    assert load_weights(path).metadata["landmark_threshold"] == [0.5] * 24
 
 
 def test_update_weight_metadata_keeps_the_weights(tmp_path):

@@ -185,6 +185,11 @@ def test_write_reconstruction_files_and_params(oracle, tmp_path):
     v, f = load_mesh(tmp_path / "head.obj")
     assert v.shape == (model.num_vertices, 3)
     assert not list(tmp_path.glob(".*tmp*"))
+    # a Reconstruction whose views, maps and fit disagree is refused before anything is written
+    for views_given in ([view, view], []):
+        with pytest.raises(ValueError, match=rf"rec: {len(views_given)} views, 1 network maps and 1 fitted views"):
+            write_reconstruction(Reconstruction(views_given, maps, fit, model), tmp_path / "other")
+    assert not (tmp_path / "other").exists() or not list((tmp_path / "other").iterdir())
 
 
 def test_a_rewrite_is_all_or_nothing_and_drops_stale_views(oracle, tmp_path):
@@ -215,6 +220,15 @@ def test_photo_view_maps_crop_pixels_to_image_pixels():
     view = PhotoView(crop=np.zeros((128, 128, 3), np.uint8), box=(10.0, 20.0, 64.0))
     out = view.to_image(torch.tensor([[0.0, 0.0], [127.0, 127.0]]))
     torch.testing.assert_close(out, torch.tensor([[9.75, 19.75], [73.25, 83.25]]))
+
+
+def test_a_photo_view_without_a_box_is_its_whole_crop_at_any_size():
+    # the defaults assumed 128-pixel crops: a 256-pixel crop's pixels were halved
+    view = PhotoView(crop=np.zeros((256, 256, 3), np.uint8))
+    assert view.box == (0.0, 0.0, 256.0) and view.image_size == (256, 256)
+    torch.testing.assert_close(view.to_image(torch.tensor([255.0, 10.0])), torch.tensor([255.0, 10.0]))
+    with pytest.raises(ValueError, match=r"crop: expected a square \(S, S, 3\) RGB image, got \(64, 48, 3\)"):
+        PhotoView(crop=np.zeros((64, 48, 3), np.uint8))
 
 
 def test_predict_maps_shapes_and_nan_for_missing_landmarks():
@@ -444,6 +458,11 @@ def test_predict_maps_checks_its_crops():
         predict_maps(net, crops)
     with pytest.raises(ValueError, match=r"crops: expected shape \(V, 3, S, S\)"):
         predict_maps(net, torch.rand(3, 16, 16))
+    # 0-255 values found no landmark and read as "no face in the crop"
+    with pytest.raises(ValueError, match=r"crops: expected RGB values in \[0, 1\] .*got values in \[0, 200\]"):
+        predict_maps(net, torch.cat([torch.zeros(1, 3, 8, 16), torch.full((1, 3, 8, 16), 200.0)], dim=2))
+    with pytest.raises(ValueError, match=r"crops: expected a side divisible by 4 .*got shape \(1, 3, 18, 18\)"):
+        predict_maps(net, torch.rand(1, 3, 18, 18))
 
 
 def test_reconstruct_views_takes_precomputed_maps(monkeypatch):

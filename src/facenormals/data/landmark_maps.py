@@ -123,12 +123,16 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
     log = torch.log(maps.clamp_min(eps))
 
     def offset(along: Tensor, size: int, take) -> Tensor:
-        lo, hi = (along - 1).clamp(0, size - 1), (along + 1).clamp(0, size - 1)
-        left, mid, right = take(lo), take(along), take(hi)
+        if size < 3:
+            return torch.zeros(along.shape, dtype=maps.dtype, device=maps.device)
+        # the parabola through the peak and its neighbours, or, at the border, through the three
+        # pixels inside the image (exact for a Gaussian either way: the log is a parabola)
+        centre = along.clamp(1, size - 2)
+        left, mid, right = take(centre - 1), take(centre), take(centre + 1)
         curvature = left - 2.0 * mid + right
         delta = 0.5 * (left - right) / torch.where(curvature < -1e-12, curvature, torch.full_like(curvature, -1.0))
-        valid = (along > 0) & (along < size - 1) & (curvature < -1e-12)
-        return torch.where(valid, delta.clamp(-0.5, 0.5), torch.zeros_like(delta))
+        delta = (centre - along).to(maps.dtype) + delta
+        return torch.where(curvature < -1e-12, delta.clamp(-0.5, 0.5), torch.zeros_like(delta))
 
     def at(r: Tensor, c: Tensor) -> Tensor:
         return torch.gather(log.reshape(b, l, h * w), 2, (r * w + c)[..., None])[..., 0]

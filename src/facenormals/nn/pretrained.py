@@ -157,4 +157,19 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     except RuntimeError as error:
         raise ValueError(f"{path}: weights do not match the architecture {arch} ({error})") from None
     net.metadata = dict(payload.get("metadata", {}))
+    try:  # a NaN threshold detects nothing, silently; a string fails in the middle of a reconstruction
+        _check_threshold(net.metadata.get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD), net.num_landmarks)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
     return net.to(device).eval()
+
+
+def _check_threshold(value: object, channels: int) -> None:
+    """Raise ``ValueError`` unless ``value`` is a number in (0, 1) or a list of one per channel."""
+    values = list(value) if isinstance(value, (list, tuple)) else [value]
+    if isinstance(value, (list, tuple)) and len(values) != channels:
+        raise ValueError(f"metadata landmark_threshold: expected one threshold per landmark channel ({channels}), "
+                         f"got {len(values)}")
+    for item in values:
+        if isinstance(item, bool) or not isinstance(item, (int, float)) or not 0.0 < float(item) < 1.0:
+            raise ValueError(f"metadata landmark_threshold: expected numbers in (0, 1), got {item!r}")

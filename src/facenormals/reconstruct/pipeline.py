@@ -89,18 +89,29 @@ class PhotoView:
 
     Attributes:
         crop: ``(S, S, 3)`` uint8 RGB network input.
-        box: ``(x0, y0, side)`` of the crop in the photo's pixels (see :func:`crop_square`).
-        image_size: ``(H, W)`` of the photo (after EXIF rotation).
+        box: ``(x0, y0, side)`` of the crop in the photo's pixels (see :func:`crop_square`); default:
+            the crop is the whole photo, ``(0, 0, S)``.
+        image_size: ``(H, W)`` of the photo (after EXIF rotation); default ``(S, S)``.
         path: where the photo came from, if a file.
         alternatives: crops of the detector's other faces in the photo, best first (tried when the
             network finds too few landmarks in this one).
     """
 
     crop: np.ndarray
-    box: tuple[float, float, float] = (0.0, 0.0, 128.0)
-    image_size: tuple[int, int] = (128, 128)
+    box: tuple[float, float, float] | None = None
+    image_size: tuple[int, int] | None = None
     path: str | None = None
     alternatives: list["PhotoView"] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        shape = getattr(self.crop, "shape", None)
+        if shape is None or len(shape) != 3 or shape[0] != shape[1] or shape[2] != 3 or shape[0] < 1:
+            raise ValueError(f"crop: expected a square (S, S, 3) RGB image, got {shape if shape is not None else type(self.crop).__name__}")
+        side = int(shape[0])
+        if self.box is None:  # the crop is the whole photo (a 256-pixel crop used to read as 128)
+            self.box = (0.0, 0.0, float(side))
+        if self.image_size is None:
+            self.image_size = (side, side)
 
     def to_image(self, pixels: Tensor) -> Tensor:
         """Crop pixels ``(..., 2)`` to photo pixels."""
@@ -150,6 +161,15 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
     check_shape(crops, ["V", 3, "S", "S"], "crops")
     check_floating(crops, "crops")
     check_finite(crops, "crops")  # one NaN pixel would turn every map into NaN
+    if crops.numel():
+        low, high = float(crops.min()), float(crops.max())
+        if low < -1e-3 or high > 1.0 + 1e-3:  # 0-255 values find no landmark, and read as "no face"
+            raise ValueError(f"crops: expected RGB values in [0, 1] (an 8-bit image / 255), got values in "
+                             f"[{low:g}, {high:g}]")
+    factor = 2 ** getattr(net, "depth", 0)
+    if crops.shape[-1] % factor:
+        raise ValueError(f"crops: expected a side divisible by {factor} (the network's 2**depth), got shape "
+                         f"{tuple(crops.shape)}")
     if threshold is None:
         threshold = landmark_threshold(net)
     start = time.perf_counter()
@@ -421,6 +441,10 @@ def _stage_reconstruction(rec: Reconstruction, out: Path, staged: _Staged) -> No
     import cv2
 
     fit, maps = rec.fit, rec.maps
+    fitted, predicted = fit.angles.shape[1], maps.normal_maps.shape[0]
+    if not len(rec.views) == fitted == predicted:
+        raise ValueError(f"rec: {len(rec.views)} views, {predicted} network maps and {fitted} fitted views; "
+                         "expected one of each per photo")
     staged.write(out / "head.ply", lambda p: save_mesh(p, fit.vertices[0], fit.faces))
     staged.write(out / "head.obj", lambda p: save_mesh(p, fit.vertices[0], fit.faces))
     R = euler_to_rotation_matrix(fit.angles[0])
