@@ -94,3 +94,23 @@ def test_check_real_refuses_the_rest(value, match):
 
     with pytest.raises(ValueError, match=f"x: {match}"):
         check_real(value, "x")
+
+
+def test_finite_checks_are_exact_despite_their_fast_path():
+    # the fast path tests the sum: a sum that overflows must fall through to the exact test, and
+    # NaN or inf anywhere must still be found and named
+    from facenormals.core.check import check_all_finite
+
+    large = torch.full((4,), 3e38)  # finite, but its float32 sum is inf
+    check_finite(large, "large")
+    check_all_finite(a=large, b=-large, c=torch.zeros(2, dtype=torch.float16) + 6e4)
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        x = torch.zeros(3, 5)
+        x[1, 2] = bad
+        with pytest.raises(ValueError, match="x: expected finite values, got 1 NaN or infinite entries"):
+            check_finite(x, "x")
+        with pytest.raises(ValueError, match="x: expected finite values"):
+            check_all_finite(ok=large, x=x)
+    both = torch.tensor([float("inf"), -float("inf")])  # their sum is NaN, each is infinite
+    with pytest.raises(ValueError, match="got 2 NaN or infinite entries"):
+        check_finite(both, "both")
