@@ -152,6 +152,10 @@ def test_options_that_silently_dropped_the_normal_term_are_errors(model, head):
                            (0.0, "0.0"), ("3", "'3'")):
         with pytest.raises(ValueError, match=rf"vertex_spacing: expected finite spacings > 0 in pixels or None, got {shown}"):
             fit_head(obs.normal_maps, obs.landmarks, model, vertex_spacing=spacing)
+    import numpy as np
+
+    assert int(fit_head(obs.normal_maps, obs.landmarks, model, vertex_spacing=(np.float32(3.0), np.int64(1)),
+                        rounds=1, iterations_per_round=1).iterations[0]) == 1  # numpy numbers are numbers
     for facing, match in ((1.0, r"min_facing: expected a value in \[-1, 1\), got 1.0"),
                           (float("nan"), "min_facing: expected a finite number")):
         with pytest.raises(ValueError, match=match):

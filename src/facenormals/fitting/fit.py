@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from numbers import Real
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -127,7 +129,7 @@ def _check_spacings(vertex_spacing: object) -> list[float | None]:
     if not spacings:
         raise ValueError("vertex_spacing: expected a spacing, a non-empty sequence of spacings or None, got []")
     for spacing in spacings:
-        if spacing is not None and not (isinstance(spacing, (int, float)) and not isinstance(spacing, bool)
+        if spacing is not None and not (isinstance(spacing, Real) and not isinstance(spacing, (bool, np.bool_))
                                          and math.isfinite(spacing) and spacing > 0):
             raise ValueError(f"vertex_spacing: expected finite spacings > 0 in pixels or None, got {vertex_spacing!r}")
     return spacings
