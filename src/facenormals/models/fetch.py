@@ -10,8 +10,8 @@ from __future__ import annotations
 import hashlib
 import http.client
 import urllib.error
-import warnings
 import urllib.request
+import warnings
 import zipfile
 from pathlib import Path, PurePosixPath
 from typing import Callable

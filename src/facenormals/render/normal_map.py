@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_same_dtype_device, check_shape
 from facenormals.geometry.projection import project_points
 from facenormals.mesh import vertex_normals
 from facenormals.render.rasterize import Fragments, interpolate_vertex_attributes, rasterize_triangles
@@ -57,9 +57,8 @@ def render_normal_map(
     check_shape(normals, ["B", "N", 3], "normals", dims)
     check_same_dtype_device(vertices, "vertices", normals=normals)
     # NaN would silently read as background (its triangles are skipped, its normals zeroed)
-    for name, x in (("vertices", vertices), ("normals", normals), ("rotation", rotation),
-                    ("translation", translation), ("intrinsics", intrinsics)):
-        check_finite(x, name)
+    check_all_finite(vertices=vertices, normals=normals, rotation=rotation, translation=translation,
+                     intrinsics=intrinsics)
     pixels, depth = project_points(vertices, rotation, translation, intrinsics)
     fragments = rasterize_triangles(pixels, depth, faces, image_size)
     camera_normals = torch.matmul(normals, rotation.transpose(1, 2))
