@@ -113,14 +113,79 @@ def test_obj_text_is_exact_for_float32_and_one_based(tmp_path):
     assert torch.equal(load_mesh(path)[0], vertices)
 
 
-def test_writing_ply_and_obj_does_not_import_trimesh(tmp_path):
-    # trimesh's import costs about half a second of every `facenormals reconstruct`
+def test_writing_and_reading_ply_and_obj_does_not_import_trimesh(tmp_path):
+    # trimesh's import costs about half a second of every `facenormals reconstruct` and `evaluate`
     import subprocess
     import sys
 
-    code = ("import sys, torch; from facenormals.mesh import save_mesh; "
+    code = ("import sys, torch; from facenormals.mesh import load_mesh, save_mesh; "
             f"save_mesh({str(tmp_path / 'a.ply')!r}, torch.eye(3), torch.tensor([[0, 1, 2]])); "
             f"save_mesh({str(tmp_path / 'a.obj')!r}, torch.eye(3), torch.tensor([[0, 1, 2]])); "
+            f"load_mesh({str(tmp_path / 'a.ply')!r}); load_mesh({str(tmp_path / 'a.obj')!r}); "
             "print('trimesh' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def _trimesh_reading(path):
+    import trimesh
+
+    mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+    return torch.as_tensor(mesh.vertices, dtype=torch.float64), torch.as_tensor(mesh.faces, dtype=torch.long)
+
+
+_OBJ_VARIANTS = {
+    "plain": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.5\nf 1 2 3\nf 2 4 3\n",
+    "texture and normal indices": ("# made by another tool\nmtllib m.mtl\no head\nv 0 0 0\nv 1 0 0\nv 0 1 0\n"
+                                   "v 1 1 0.5\nvt 0 0\nvt 1 0\nvt 0 1\nvn 0 0 1\ng part\nusemtl skin\ns 1\n"
+                                   "f 1/1/1 2/2/1 3/3/1\nf 2/2/1 4/1/1 3/3/1\n"),
+    "normal indices only": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.5\nvn 0 0 1\nf 1//1 2//1 3//1\nf 2//1 4//1 3//1\n",
+    "vertex colours": "v 0 0 0 1 0 0\nv 1 0 0 0 1 0\nv 0 1 0 0 0 1\nv 1 1 0.5 1 1 1\nf 1 2 3\nf 2 4 3\n",
+    "windows line ends": "v 0 0 0\r\nv 1 0 0\r\nv 0 1 0\r\nv 1 1 0.5\r\nf 1 2 3\r\nf 2 4 3\r\n",
+    # read by trimesh: polygons, relative indices
+    "a quad": "v 0 0 0\nv 1 0 0\nv 1 1 0.5\nv 0 1 0\nf 1 2 3 4\n",
+    "relative indices": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.5\nf -4 -3 -2\nf -3 -1 -2\n",
+}
+
+
+@pytest.mark.parametrize("variant", list(_OBJ_VARIANTS))
+def test_obj_reading_agrees_with_trimesh(tmp_path, variant):
+    path = tmp_path / "m.obj"
+    path.write_bytes(_OBJ_VARIANTS[variant].encode())
+    vertices, faces = load_mesh(path, dtype=torch.float64)
+    reference_vertices, reference_faces = _trimesh_reading(path)
+    assert torch.equal(vertices, reference_vertices)
+    assert torch.equal(faces, reference_faces)
+
+
+def test_ply_reading_agrees_with_trimesh(tmp_path):
+    import trimesh
+
+    model = builtin_head_model()
+    mesh = trimesh.Trimesh(model.mean.double().numpy() + 0.123456789, model.faces.numpy(), process=False)
+    mesh.visual.vertex_colors = [200, 150, 100, 255]  # more vertex properties than x y z
+    variants = {"binary float32 with colours": mesh.export(file_type="ply"),  # trimesh writes float32 x y z
+                "ascii": mesh.export(file_type="ply", encoding="ascii"),
+                "ours": save_mesh(tmp_path / "ours.ply", model.mean.double() + 0.123456789, model.faces).read_bytes()}
+    for name, data in variants.items():
+        path = tmp_path / f"{name}.ply"
+        path.write_bytes(data)
+        vertices, faces = load_mesh(path, dtype=torch.float64)
+        reference_vertices, reference_faces = _trimesh_reading(path)
+        assert torch.equal(vertices, reference_vertices), name
+        assert torch.equal(faces, reference_faces), name
+
+
+def test_a_quad_ply_is_triangulated_and_a_truncated_one_is_named(tmp_path):
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+              "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    points = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]).numpy().tobytes()
+    quad = bytes([4]) + torch.tensor([0, 1, 2, 3], dtype=torch.int32).numpy().tobytes()
+    path = tmp_path / "quad.ply"
+    path.write_bytes(header + points + quad)
+    vertices, faces = load_mesh(path)
+    assert vertices.shape == (4, 3) and faces.shape == (2, 3)
+    assert torch.equal(faces, _trimesh_reading(path)[1])
+    path.write_bytes(header + points[:-5])
+    with pytest.raises(ValueError, match="quad.ply"):
+        load_mesh(path)
