@@ -357,3 +357,117 @@ def test_resuming_a_dataset_of_another_generator_version_is_refused(tmp_path):
     with pytest.raises(ValueError, match=f"holds samples of generator version 1; .* version {GENERATOR_VERSION}"):
         _write(tmp_path / "out", count=2, shard_size=1, config=config)
     assert len(SyntheticHeadDataset(tmp_path / "out")) == 1  # the dataset as it is still reads
+
+
+def test_a_shard_whose_index_does_not_decompress_is_regenerated(dataset_root, tmp_path):
+    """zipfile raises zlib.error (not BadZipFile) on a damaged deflate stream."""
+    import shutil
+    import struct
+    import zipfile
+    import zlib
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    path = root / "shard_00000.npz"
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo("index.npy")
+    data = bytearray(path.read_bytes())
+    name_length, extra_length = struct.unpack_from("<HH", data, info.header_offset + 26)  # the local header's
+    start = info.header_offset + 30 + name_length + extra_length
+    data[start] = 0b111  # the first deflate block: final, of the reserved type 3
+    path.write_bytes(bytes(data))
+    with pytest.raises(zlib.error, match="invalid block type"), zipfile.ZipFile(path) as archive:
+        archive.read("index.npy")
+    summary = _write(root)
+    assert summary.shards_written == 1 and summary.shards_skipped == 2
+    assert path.read_bytes() == (dataset_root / "shard_00000.npz").read_bytes()
+
+
+def test_other_landmark_vertices_are_another_model(dataset_root, tmp_path):
+    """The landmark vertices place the stored landmarks, their visibility and the hair."""
+    import shutil
+
+    from facenormals.models import builtin_head_model
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    model = builtin_head_model()
+    landmarks = dict(model.landmarks)
+    landmarks["chin"] = (landmarks["chin"] + 5) % model.num_vertices
+    other = type(model)(model.mean, model.shape_basis, model.faces, shape_std=model.shape_std,
+                        landmarks=landmarks, face_region=model.face_region, name="builtin")
+    other.save(tmp_path / "other.npz")
+    with pytest.raises(ValueError, match="another model"):
+        write_dataset(root, 12, seed=1, model_spec=str(tmp_path / "other.npz"), shard_size=4, config=CONFIG,
+                      progress=False)
+
+
+def test_a_manifest_without_landmark_vertices_still_resumes(dataset_root, tmp_path):
+    import json
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    del manifest["model"]["landmark_indices"]  # written before session 14
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    assert _write(root).shards_skipped == 3
+
+
+def test_an_interrupted_extension_can_be_taken_back(dataset_root, tmp_path):
+    """Raising --count publishes the larger count before its shards exist; as long as none was
+    written, the old count is accepted again (and the dataset reads as before)."""
+    import json
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest["count"] = 4000  # what an interrupted `--count 4000` leaves
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(FileNotFoundError, match="of 1000 shards are missing"):
+        SyntheticHeadDataset(root)
+    before = {name: (root / name).read_bytes() for name in os.listdir(root) if name.startswith("shard_")}
+    summary = _write(root, count=10)
+    assert summary.shards_written == 0 and summary.shards_skipped == 3
+    assert {name: (root / name).read_bytes() for name in os.listdir(root) if name.startswith("shard_")} == before
+    assert len(SyntheticHeadDataset(root)) == 10
+    manifest["count"] = 4000
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    shutil.copy(root / "shard_00002.npz", root / "shard_00003.npz")  # a shard past sample 10 exists
+    with pytest.raises(ValueError, match="would shrink it, rewriting or orphaning its shards of samples from 10 on"):
+        _write(root, count=10)
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("shard_size", 0, r"shard_size: expected an integer >= 1, got 0"),
+    ("count", 2.5, r"count: expected an integer >= 1, got 2.5"),
+    ("image_size", "128", r"image_size: expected an integer >= 1, got '128'"),
+    ("normal_scale", float("nan"), r"normal_scale: expected a finite number > 0, got nan"),
+    ("normal_scale", 0, r"normal_scale: expected a finite number > 0, got 0"),
+])
+def test_a_manifest_with_bad_values_is_named(dataset_root, tmp_path, key, value, match):
+    import json
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest[key] = value
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="manifest.json: " + match):
+        SyntheticHeadDataset(root)
+
+
+def test_a_manifest_whose_image_size_disagrees_with_the_samples_is_named(dataset_root, tmp_path):
+    import json
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest["image_size"] //= 2
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"shard_00000.npz: corrupt shard, cannot read sample 0 .*member image/0000 "
+                                         r"has shape \(3, 128, 128\), expected \(3, 64, 64\)"):
+        SyntheticHeadDataset(root)[0]

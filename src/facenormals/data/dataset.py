@@ -135,6 +135,12 @@ class SyntheticHeadDataset(Dataset):
             image = torch.from_numpy(read_member(archive, f"image/{i:04d}")).permute(2, 0, 1).float() / 255.0
             normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
             segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
+            S = self.image_size
+            for name, array, shape in (("image", image, (3, S, S)), ("normals", normals, (3, S, S)),
+                                       ("segmentation", segmentation, (S, S))):
+                if tuple(array.shape) != shape:
+                    raise ValueError(f"member {name}/{i:04d} has shape {tuple(array.shape)}, expected {shape} "
+                                     f"from the manifest's image_size {S}")
         except _StaleShard:
             raise
         except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error) as error:

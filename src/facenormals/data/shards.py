@@ -25,11 +25,13 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import multiprocessing
 import os
 import sys
 import time
 import zipfile
+import zlib
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -108,6 +110,13 @@ def read_manifest(root: str | Path) -> dict:
     missing = [key for key in ("count", "shard_size", "image_size", "normal_scale", "model") if key not in manifest]
     if missing:
         raise ValueError(f"{path}: the manifest lacks {missing}")
+    for key in ("count", "shard_size", "image_size"):
+        value = manifest[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{path}: {key}: expected an integer >= 1, got {value!r}")
+    scale = manifest["normal_scale"]
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"{path}: normal_scale: expected a finite number > 0, got {scale!r}")
     return manifest
 
 
@@ -138,8 +147,8 @@ def shard_is_complete(path: Path, indices: range) -> bool:
             with archive.open("index.npy") as handle:
                 index = np.lib.format.read_array(handle)
             names = set(archive.namelist())
-    except (OSError, zipfile.BadZipFile, ValueError, KeyError, EOFError):
-        return False
+    except (OSError, zipfile.BadZipFile, zlib.error, ValueError, KeyError, EOFError):
+        return False  # unreadable: written again
     if not np.array_equal(index, np.arange(indices.start, indices.stop)):
         return False
     return (all(f"{name}.npy" in names for name in SHARD_ARRAYS)
@@ -220,6 +229,7 @@ def _model_fingerprint(model) -> dict:
         "num_expressions": model.num_expressions,
         "expression_names": list(model.expression_names),
         "landmark_names": list(model.landmark_names),
+        "landmark_indices": model.landmark_indices.tolist(),  # they place the landmarks, hair and make-up
     }
 
 
@@ -323,8 +333,9 @@ def write_dataset(
                          "use another folder, or delete the shards to start afresh")
     if path.is_file():
         existing = read_manifest(root)
-        if "content_sha256" not in existing.get("model", {}):  # written before the model's content was recorded
-            manifest["model"] = {k: v for k, v in manifest["model"].items() if k != "content_sha256"}
+        for key in ("content_sha256", "landmark_indices"):  # written before the model's content was recorded
+            if key not in existing.get("model", {}):
+                manifest["model"] = {k: v for k, v in manifest["model"].items() if k != key}
         if "photos" not in existing:  # written before the photos were recorded
             del manifest["photos"]
         written_by = int(existing.get("generator", 1))
@@ -332,10 +343,12 @@ def write_dataset(
             raise ValueError(f"{root}: holds samples of generator version {written_by}; this facenormals draws "
                              f"version {GENERATOR_VERSION}, whose samples differ, so resuming would mix the two; "
                              "use another folder (the dataset as it is still reads)")
-        if int(existing.get("count", count)) > count:  # would rewrite the last shard and orphan later ones
+        if existing["count"] > count and _holds_samples_from(root, count, shard_size):
+            # shrinking would rewrite the last shard and orphan later ones; an extension that was
+            # interrupted before writing past the old count may be taken back
             raise ValueError(f"{root}: holds a dataset of {existing['count']} samples; --count {count} would shrink "
-                             "it (a count can only grow); use another folder, or the SyntheticHeadDataset "
-                             "of this one with a Subset")
+                             f"it, rewriting or orphaning its shards of samples from {count} on; use another folder, "
+                             "or the SyntheticHeadDataset of this one with a Subset")
         for key in ("seed", "shard_size", "image_size", "model", "config", "photos"):
             if existing.get(key) != manifest.get(key):
                 raise ValueError(
@@ -369,6 +382,19 @@ def write_dataset(
         bar.close()
     return SynthSummary(root=root, shards_written=written, shards_skipped=len(mine) - len(pending), samples=total,
                         seconds=time.time() - start)
+
+
+def _holds_samples_from(root: Path, count: int, shard_size: int) -> bool:
+    """Whether a shard file of ``root`` holds samples with indices ``>= count``."""
+    last = (count - 1) // shard_size
+    for path in root.glob("shard_*.npz"):
+        digits = path.stem[len("shard_"):]
+        if not digits.isdigit():
+            continue
+        k = int(digits)
+        if k > last or (k == last and not shard_is_complete(path, shard_range(k, count, shard_size))):
+            return True
+    return False
 
 
 def _labels() -> dict:
