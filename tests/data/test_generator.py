@@ -244,8 +244,11 @@ def test_fixed_poses_give_views_of_one_person(generator):
     nose, eyes = names.index("nose_tip"), [names.index("right_eye_outer"), names.index("left_eye_outer")]
     offset = views.landmarks[:, nose, 0] - views.landmarks[:, eyes, 0].mean(1)
     assert offset[0] * offset[2] < 0 and abs(offset[1]) < min(abs(offset[0]), abs(offset[2]))
-    with pytest.raises(ValueError, match="angles"):
+    with pytest.raises(ValueError, match=r"angles: expected 2 finite \(roll, pitch, yaw\) triples, one per index, "
+                                         r"got 1 of shapes \[\(3,\)\]"):
         generator.generate(3, [7, 8], angles=[(0.0, 0.0, 0.0)])
+    with pytest.raises(ValueError, match=r"angles: .* got 2 of shapes \[\(2,\), \(3,\)\]"):  # ragged
+        generator.generate(3, [7, 8], angles=[(0.0, 0.0, 0.0), (0.0, 0.0)])
 
 
 def test_variation(generator):
@@ -292,6 +295,15 @@ def test_wider_identity_range(generator):
         ({"max_expressions": 2.5}, "max_expressions: expected an integer"),
         ({"principal_jitter": -1.0}, r"principal_jitter: expected pixels in \[0, 63.5\)"),
         ({"principal_jitter": 64.0}, r"principal_jitter: expected pixels in \[0, 63.5\) \(the principal point inside"),
+        ({"temperature": (float("nan"), float("nan"))}, r"temperature: expected 1000 <= low <= high <= 40000 kelvin"),
+        ({"temperature": (-100.0, 5.0)}, r"temperature: expected 1000 <= low"),
+        ({"temperature": (9000.0, 2500.0)}, r"temperature: expected 1000 <= low <= high"),
+        ({"temperature": 6500.0}, r"temperature: expected a \(low, high\) pair of numbers, got 6500.0"),
+        ({"focal": (120.0, float("inf"))}, r"focal: expected 0 < low <= high < inf"),
+        ({"focal": ("120", "800")}, r"focal: expected a \(low, high\) pair of numbers"),
+        ({"num_lights": (1.5, 2)}, r"num_lights: expected integers, got \(1.5, 2\)"),
+        ({"background_folders": "photos"}, r"background_folders: expected a tuple of folders, got the single str "
+                                           r"'photos'"),
     ],
 )
 def test_bad_config(kwargs, match):

@@ -101,6 +101,10 @@ def test_bad_scenes_are_named_before_drawing(renderer):
         (dict(vertices=np.zeros((n, 2), np.float32)), r"parts\[0\]\.vertices: expected shape \(N, 3\)"),
         (dict(rotation=np.eye(4)), r"parts\[0\]\.rotation: expected shape \(3, 3\)"),
         (dict(label=0), r"parts\[0\]\.label: expected 1..255, got 0"),
+        (dict(vertices=np.full((n, 3), np.nan, np.float32)), r"parts\[0\]\.vertices: expected finite numbers"),
+        (dict(normals=np.full((n, 3), np.inf, np.float32)), r"parts\[0\]\.normals: expected finite numbers"),
+        (dict(translation=np.array([0.0, np.nan, 300.0])), r"parts\[0\]\.translation: expected finite numbers"),
+        (dict(rotation=np.full((3, 3), np.nan)), r"parts\[0\]\.rotation: expected finite numbers"),
     ]
     for changes, match in bad:
         with pytest.raises(ValueError, match=match):
@@ -110,6 +114,13 @@ def test_bad_scenes_are_named_before_drawing(renderer):
         renderer.render([TileScene([_part()], np.array([60.0, 15.5, 15.5]), four)])
     with pytest.raises(ValueError, match=r"scenes\[0\]\.intrinsics: expected shape \(3,\)"):
         renderer.render([TileScene([_part()], np.array([60.0, 15.5]), light)])
+    with pytest.raises(ValueError, match=r"scenes\[0\]\.intrinsics: expected a focal length > 0, got -60.0"):
+        renderer.render([TileScene([_part()], np.array([-60.0, 15.5, 15.5]), light)])
+    with pytest.raises(ValueError, match=r"scenes\[0\]\.intrinsics: expected finite numbers"):
+        renderer.render([TileScene([_part()], np.array([np.nan, 15.5, 15.5]), light)])
+    dark = Lighting(np.full(3, np.nan), np.array([[0.0, 0.0, -1.0]]), np.ones((1, 3)))
+    with pytest.raises(ValueError, match=r"scenes\[0\]\.lighting\.ambient: expected finite numbers"):
+        renderer.render([TileScene([_part()], np.array([60.0, 15.5, 15.5]), dark)])
 
 
 def test_a_closed_renderer_says_so():

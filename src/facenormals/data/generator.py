@@ -15,6 +15,8 @@ import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from numbers import Real
+from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -124,11 +126,23 @@ class SynthConfig:
         if self.hair_probability + self.cap_probability > 1.0:
             raise ValueError("hair_probability + cap_probability: expected at most 1, got "
                              f"{self.hair_probability + self.cap_probability}")
+        for name in ("fill", "focal", "temperature", "num_lights"):
+            pair = getattr(self, name)
+            if (not isinstance(pair, (tuple, list)) or len(pair) != 2
+                    or any(isinstance(v, (bool, np.bool_)) or not isinstance(v, Real) for v in pair)):
+                raise ValueError(f"{name}: expected a (low, high) pair of numbers, got {pair!r}")
         lo, hi = self.fill
         if not 0.0 < lo <= hi <= 1.5:
             raise ValueError(f"fill: expected 0 < low <= high <= 1.5, got {self.fill}")
-        if not 0.0 < self.focal[0] <= self.focal[1]:
-            raise ValueError(f"focal: expected 0 < low <= high, got {self.focal}")
+        if not 0.0 < self.focal[0] <= self.focal[1] < math.inf:
+            raise ValueError(f"focal: expected 0 < low <= high < inf, got {self.focal}")
+        if not 1000.0 <= self.temperature[0] <= self.temperature[1] <= 40000.0:  # color_temperature's range
+            raise ValueError(f"temperature: expected 1000 <= low <= high <= 40000 kelvin, got {self.temperature}")
+        if any(int(v) != v for v in self.num_lights):
+            raise ValueError(f"num_lights: expected integers, got {self.num_lights}")
+        if isinstance(self.background_folders, (str, Path)):
+            raise ValueError(f"background_folders: expected a tuple of folders, got the single "
+                             f"{type(self.background_folders).__name__} {str(self.background_folders)!r}")
         # the principal point stays inside the image: the framing relies on it
         limit = 64.0 * (self.image_size - 1) / self.image_size
         if not 0.0 <= self.principal_jitter < limit:
@@ -324,7 +338,7 @@ class SyntheticHeadGenerator:
             angles = [np.asarray(a, dtype=np.float32) for a in angles]
             if len(angles) != len(indices) or any(a.shape != (3,) or not np.isfinite(a).all() for a in angles):
                 raise ValueError(f"angles: expected {len(indices)} finite (roll, pitch, yaw) triples, one per index, "
-                                 f"got {np.asarray(angles).shape}")
+                                 f"got {len(angles)} of shapes {sorted({a.shape for a in angles})}")
         capacity = self.renderer.capacity
         groups: list[list[int]] = []
         used: set[int] = set()

@@ -329,8 +329,9 @@ class TileRenderer:
 
         Raises:
             ValueError: on bad tiles, a part whose arrays do not have the shapes of :class:`MeshPart`
-                or whose faces index outside its vertices, intrinsics that are not ``(3,)``, or
-                lighting with more than :data:`MAX_LIGHTS` lights.
+                or whose faces index outside its vertices, non-finite arrays, intrinsics that are not
+                ``(3,)`` or whose focal length is not positive, or lighting with more than
+                :data:`MAX_LIGHTS` lights.
             RuntimeError: after :meth:`close`.
         """
         if self._context is None:
@@ -487,14 +488,27 @@ def _check_shape(array: object, shape: tuple[int | None, ...], name: str) -> Non
         raise ValueError(f"{name}: expected shape ({expected}), got {got}")
 
 
+def _check_finite(array: object, name: str) -> None:
+    """Raise ``ValueError`` unless ``array`` holds finite numbers only (NaN draws garbage or nothing)."""
+    values = np.asarray(array)
+    if values.dtype.kind not in "iuf" or not np.isfinite(values).all():
+        raise ValueError(f"{name}: expected finite numbers, got " +
+                         (f"dtype {values.dtype}" if values.dtype.kind not in "iuf" else "NaN or infinite values"))
+
+
 def _check_scene(scene: TileScene, name: str) -> None:
     """Raise ``ValueError`` naming the first array of ``scene`` that does not fit (the GPU would read
     outside its buffers on an out-of-range face or a short array)."""
     _check_shape(scene.intrinsics, (3,), f"{name}.intrinsics")
+    _check_finite(scene.intrinsics, f"{name}.intrinsics")
+    if not float(np.asarray(scene.intrinsics)[0]) > 0:  # a negative focal length mirrors the image
+        raise ValueError(f"{name}.intrinsics: expected a focal length > 0, got {float(np.asarray(scene.intrinsics)[0])}")
     light = scene.lighting
     _check_shape(light.ambient, (3,), f"{name}.lighting.ambient")
     _check_shape(light.directions, (None, 3), f"{name}.lighting.directions")
     _check_shape(light.colors, (len(light.directions), 3), f"{name}.lighting.colors")
+    for what in ("ambient", "directions", "colors"):
+        _check_finite(getattr(light, what), f"{name}.lighting.{what}")
     if len(light.directions) > MAX_LIGHTS:
         raise ValueError(f"{name}.lighting: expected at most {MAX_LIGHTS} lights, got {len(light.directions)}")
     for k, part in enumerate(scene.parts):
@@ -504,8 +518,11 @@ def _check_scene(scene: TileScene, name: str) -> None:
         for what, shape in (("normals", (n, 3)), ("colors", (n, 3)), ("faces", (None, 3)), ("rotation", (3, 3)),
                             ("translation", (3,))):
             _check_shape(getattr(part, what), shape, f"{where}.{what}")
+        for what in ("vertices", "normals", "colors", "rotation", "translation"):
+            _check_finite(getattr(part, what), f"{where}.{what}")
         if part.occlusion is not None:
             _check_shape(part.occlusion, (n,), f"{where}.occlusion")
+            _check_finite(part.occlusion, f"{where}.occlusion")
         faces = np.asarray(part.faces)
         if faces.dtype.kind not in "iu":
             raise ValueError(f"{where}.faces: expected integers, got dtype {faces.dtype}")
