@@ -502,3 +502,33 @@ def test_the_same_photo_twice_is_reported(tmp_path):
     messages.clear()
     reconstruct_photos([photo], None, model="builtin", log=messages.append, rounds=1, iterations_per_round=2)
     assert not [m for m in messages if m.startswith("warning:")]
+
+
+def test_params_json_names_what_reloads_the_model(tmp_path):
+    """params.json's model_spec reloads the fitted model: the name says only "builtin" for a saved
+    copy of the built-in head with other components, whose file must be reloaded instead."""
+    import json
+    from pathlib import Path
+
+    from facenormals.models import load_model
+    from facenormals.reconstruct import reconstruct_photos, write_reconstruction
+
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    model = builtin_head_model()
+    mine = type(model)(model.mean, 1.5 * model.shape_basis, model.faces, shape_std=model.shape_std,
+                       landmarks=model.landmarks, face_region=model.face_region, name="builtin")
+    mine.save(tmp_path / "mine.npz")
+    outputs = {}
+    for spec in ("builtin", tmp_path / "mine.npz", mine):
+        rec = reconstruct_photos([photo], None, model=spec, log=lambda message: None, rounds=1,
+                                 iterations_per_round=2)
+        out = tmp_path / f"out{len(outputs)}"
+        write_reconstruction(rec, out)
+        outputs[str(spec)] = (rec, json.loads((out / "params.json").read_text()))
+    assert outputs["builtin"][1]["model_spec"] == "builtin"
+    rec, params = outputs[str(tmp_path / "mine.npz")]
+    assert params["model"] == "builtin" and params["model_spec"] == str((tmp_path / "mine.npz").resolve())
+    reloaded = load_model(params["model_spec"])
+    vertices = reloaded(torch.tensor([params["shape_coeffs"]]))
+    assert torch.allclose(vertices, rec.fit.vertices, atol=1e-3)
+    assert outputs[str(mine)][1]["model_spec"] is None  # given as an object

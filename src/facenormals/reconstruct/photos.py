@@ -151,9 +151,11 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
                 "the multi-view fit, which then weighs that view double and adds no other viewpoint")
 
     t = time.perf_counter()
+    model_spec = None  # what load_model reloads this model from, for params.json
     if not isinstance(model, MorphableModel):
         spec = model
         model = load_model(spec)
+        model_spec = model.name if spec in ("auto", "ict", "builtin") else str(Path(spec).resolve())
         if spec == "auto" and model.name == "builtin":
             log("ICT-FaceKit is not installed: using the built-in head "
                 "(`facenormals models fetch ict` gets the full model)")
@@ -177,7 +179,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     timings["network"] = maps.seconds
     timings["fit"] = float(fit.timings.get("total_s", time.perf_counter() - t - maps.seconds))
     timings["reconstruct"] = time.perf_counter() - t
-    rec = Reconstruction(views=views, maps=maps, fit=fit, model=model, timings=timings)
+    rec = Reconstruction(views=views, maps=maps, fit=fit, model=model, timings=timings, model_spec=model_spec)
     if out_dir is not None:
         written = write_reconstruction(rec, out_dir)
         log(f"wrote {len(written)} files to {out_dir}: " + ", ".join(p.name for p in written))

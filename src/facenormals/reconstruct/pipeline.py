@@ -355,6 +355,9 @@ class Reconstruction:
     fit: FitResult
     model: MorphableModel
     timings: dict[str, float] = field(default_factory=dict)
+    #: what :func:`~facenormals.models.load_model` reloads the model from (``"ict"``, ``"builtin"`` or
+    #: an absolute path), ``None`` when the model was given as an object.
+    model_spec: str | None = None
 
 
 class _Staged:
@@ -478,7 +481,7 @@ def _stage_reconstruction(rec: Reconstruction, out: Path, staged: _Staged) -> No
         })
     params = {
         "format": "facenormals-reconstruction", "version": 1,
-        "model": rec.model.name, "units": "mm",
+        "model": rec.model.name, "model_spec": rec.model_spec, "units": "mm",
         "convention": "X_camera = R (X_model + t); pixel = (f X/Z + u0, f Y/Z + v0); see docs/conventions.md",
         "shape_coeffs": fit.shape_coeffs[0].tolist(),
         "expression_coeffs": None if fit.expression_coeffs is None else fit.expression_coeffs[0].tolist(),
