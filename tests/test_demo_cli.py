@@ -206,3 +206,19 @@ def test_evaluate_needs_landmarks_for_a_prediction_with_other_triangles(tmp_path
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(landmarks)]) == 0
     out = capsys.readouterr().out
     assert "warning" not in out and "ICP converged" in out
+
+
+def test_a_closed_stdout_exits_quietly_with_sigpipe_status():
+    """`facenormals models show X | head`: the reader goes away; no "error: Broken pipe" line."""
+    import os
+    import subprocess
+    import sys
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # every write to stdout fails with EPIPE
+    try:
+        run = subprocess.run([sys.executable, "-m", "facenormals", "models", "show", "builtin"], stdout=write_end,
+                             stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert run.returncode == 141 and run.stderr == ""

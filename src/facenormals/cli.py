@@ -361,6 +361,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"facenormals {args.command}: interrupted (files already written are kept; rerun to resume "
               "where that applies)", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of stdout went away (`facenormals models show X | head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 141  # 128 + SIGPIPE, as a shell reports a command killed by it
     except (ValueError, OSError, RuntimeError, ArithmeticError) as error:
         if os.environ.get("FACENORMALS_TRACEBACK", "") not in ("", "0"):
             raise

@@ -94,6 +94,12 @@ def test_load_errors_name_the_file(tmp_path):
     missing = tmp_path / "nope.npz"
     with pytest.raises(ModelFileError, match="nope.npz: model file not found"):
         MorphableModel.load(missing)
+    from facenormals.models import load_model
+
+    with pytest.raises(ModelFileError, match=r"^ICT: model file not found \(model names: \"ict\", \"builtin\", \"auto\"\)$"):
+        load_model("ICT")  # a mistyped name
+    with pytest.raises(ModelFileError, match=r"nope.npz: model file not found$"):
+        load_model(missing)
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(b"this is not a zip archive")
     with pytest.raises(ModelFileError, match="garbage.npz: cannot read"):

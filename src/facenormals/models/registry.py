@@ -45,7 +45,8 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
     if path.is_dir() and (path / "generic_neutral_mesh.obj").is_file():
         return load_ict_raw(path, dtype=dtype)
     if not path.is_file():
-        raise ModelFileError(f"{path}: model file not found")
+        hint = "" if path.suffix or len(path.parts) > 1 else ' (model names: "ict", "builtin", "auto")'
+        raise ModelFileError(f"{path}: model file not found{hint}")
     suffix = path.suffix.lower()
     if suffix == ".zip":
         raise ModelFileError(f"{path}: a repository archive is converted once with "
