@@ -88,3 +88,26 @@ def test_missing_pyrender_under_osmesa_says_to_install_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyrender", None)
     with pytest.raises(HeadlessGLError, match=r"PYOPENGL_PLATFORM=osmesa failed .*pip install pyrender"):
         create_gl_context()
+
+
+@pytest.mark.parametrize("installed, message", [(False, "the OSMesa library is not installed; install EGL"),
+                                                (True, "has a broken OSMesa binding: install EGL")])
+def test_an_osmesa_failure_is_explained_by_its_cause(installed, message):
+    code = (
+        "import builtins, os\n"
+        "os.environ['PYOPENGL_PLATFORM'] = 'osmesa'\n"
+        "real = builtins.__import__\n"
+        "def fake(name, *args, **kwargs):\n"
+        "    if name == 'pyrender':\n"
+        "        raise ImportError(\"('Unable to load OpenGL library', 'OSMesa: cannot open shared object file')\")\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = fake\n"
+        "from facenormals.data import gl_platform\n"
+        f"gl_platform.osmesa_available = lambda: {installed}\n"
+        "try:\n"
+        "    gl_platform.create_gl_context()\n"
+        "except gl_platform.HeadlessGLError as error:\n"
+        "    print(error)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "PYOPENGL_PLATFORM=osmesa failed" in out and message in out, out

@@ -178,10 +178,16 @@ def create_gl_context() -> _Context:
         import pyrender  # noqa: F401
     except ImportError as error:
         missing = isinstance(error, ModuleNotFoundError) and error.name in ("pyrender", "OpenGL")
-        hint = ("PyOpenGL 3.1.0 (pinned by pyrender) has a broken OSMesa binding: install EGL "
-                f"({EGL_PACKAGES}) and unset PYOPENGL_PLATFORM" if platform == "osmesa" and not missing
-                else "pyrender and PyOpenGL are dependencies of facenormals: reinstall it (`pip install -e .` or "
-                "`pip install pyrender`)")
+        if platform == "osmesa" and not missing and not osmesa_available():
+            hint = (f"the OSMesa library is not installed; install EGL ({EGL_PACKAGES}) and unset PYOPENGL_PLATFORM "
+                    "(EGL is the supported path: the OSMesa binding of PyOpenGL 3.1.0, pinned by pyrender, is broken)")
+        elif platform == "osmesa" and not missing:
+            hint = (f"PyOpenGL 3.1.0 (pinned by pyrender) has a broken OSMesa binding: install EGL ({EGL_PACKAGES}) "
+                    "and unset PYOPENGL_PLATFORM")
+        else:
+            hint = ("pyrender and PyOpenGL are dependencies of facenormals: reinstall it (`pip install -e .` or "
+                    "`pip install pyrender`)")
+
         raise HeadlessGLError(
             f"importing pyrender with PYOPENGL_PLATFORM={platform} failed ({error}); {hint}"
         ) from error

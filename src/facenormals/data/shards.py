@@ -351,10 +351,9 @@ def write_dataset(
                              "or the SyntheticHeadDataset of this one with a Subset")
         for key in ("seed", "shard_size", "image_size", "model", "config", "photos"):
             if existing.get(key) != manifest.get(key):
-                raise ValueError(
-                    f"{root}: holds a dataset with another {key} ({existing.get(key)!r} != {manifest[key]!r}); "
-                    "use another folder or the same settings to resume"
-                )
+                raise ValueError(f"{root}: holds a dataset with another {key} "
+                                 f"({_difference(existing.get(key), manifest.get(key))}); "
+                                 "use another folder or the same settings to resume")
     num_shards = -(-count // shard_size)
     mine = [k for k in range(num_shards) if k % world_size == rank]
     pending = [k for k in mine if not shard_is_complete(root / shard_name(k), shard_range(k, count, shard_size))]
@@ -382,6 +381,15 @@ def write_dataset(
         bar.close()
     return SynthSummary(root=root, shards_written=written, shards_skipped=len(mine) - len(pending), samples=total,
                         seconds=time.time() - start)
+
+
+def _difference(old: object, new: object) -> str:
+    """``old != new`` for values, or for the entries of two dicts that differ (a model's fingerprint
+    lists 53 expression names: the message names what differs, not everything)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        keys = [k for k in dict.fromkeys([*old, *new]) if old.get(k) != new.get(k)]
+        return "; ".join(f"{k}: {old.get(k)!r} != {new.get(k)!r}" for k in keys)
+    return f"{old!r} != {new!r}"
 
 
 def _holds_samples_from(root: Path, count: int, shard_size: int) -> bool:
