@@ -42,7 +42,7 @@ PUBLIC = {
                          "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "shares_vertex_order",
                          "summarise"],
     "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "drop_hidden_landmarks",
-                            "fit_head", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"],
+                            "fit_head", "grid_subset", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"],
     # used by examples/ (paper_pipeline.py, demo_synthetic_fit.py) and the `demo` command
     "facenormals.fitting.oracle": ["OracleViews", "render_oracle_views"],
     "facenormals.demo": ["DemoReport", "run_demo"],
