@@ -354,3 +354,28 @@ def test_loss_of_an_empty_batch_is_an_error():
     out = UNetOutput(torch.zeros(0, 3, 8, 8), torch.zeros(0, 2, 8, 8), torch.zeros(0, 1, 8, 8))
     with pytest.raises(ValueError, match=r"output.normals: expected at least one image and pixel, got shape \(0, 3, 8, 8\)"):
         normal_landmark_loss(out, torch.zeros(0, 3, 8, 8), torch.zeros(0, 2, 8, 8))
+
+
+def test_loss_with_a_global_foreground_count_averages_to_the_global_batch_loss():
+    """Data-parallel training: each process divides by the global count / processes, and the mean
+    of the processes' losses (DDP averages their gradients) is the loss of the whole batch."""
+    torch.manual_seed(0)
+    normals_gt = torch.nn.functional.normalize(torch.randn(4, 3, 6, 6, dtype=torch.float64), dim=1)
+    foreground = torch.rand(4, 1, 6, 6) > torch.tensor([0.2, 0.9, 0.5, 0.7]).view(4, 1, 1, 1)  # uneven shares
+    normals_gt = normals_gt * foreground
+    out = UNetOutput(torch.nn.functional.normalize(torch.randn(4, 3, 6, 6, dtype=torch.float64), dim=1),
+                     torch.zeros(4, 2, 6, 6, dtype=torch.float64), torch.zeros(4, 1, 6, 6, dtype=torch.float64))
+    whole = normal_landmark_loss(out, normals_gt, torch.zeros(4, 2, 6, 6, dtype=torch.float64), foreground)[1]
+    halves = [UNetOutput(*(t[i:i + 2] for t in out)) for i in (0, 2)]
+    per_rank = float(foreground.sum()) / 2
+    shares = [normal_landmark_loss(h, normals_gt[i:i + 2], torch.zeros(2, 2, 6, 6, dtype=torch.float64),
+                                   foreground[i:i + 2], foreground_pixels=per_rank)[1]["normals"]
+              for h, i in zip(halves, (0, 2))]
+    torch.testing.assert_close((shares[0] + shares[1]) / 2, whole["normals"])
+    own = [normal_landmark_loss(h, normals_gt[i:i + 2], torch.zeros(2, 2, 6, 6, dtype=torch.float64),
+                                foreground[i:i + 2])[1]["normals"] for h, i in zip(halves, (0, 2))]
+    assert abs(float((own[0] + own[1]) / 2 - whole["normals"])) > 1e-3  # per-rank counts weigh pixels unevenly
+    for bad in (float("nan"), -1.0, torch.ones(2)):
+        with pytest.raises(ValueError, match="foreground_pixels: expected a finite number >= 0"):
+            normal_landmark_loss(out, normals_gt, torch.zeros(4, 2, 6, 6, dtype=torch.float64), foreground,
+                                 foreground_pixels=bad)

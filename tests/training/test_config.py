@@ -19,7 +19,8 @@ def test_learning_rate_schedule_warmup_then_cosine():
 @pytest.mark.parametrize("field,value", [("steps", 0), ("batch_size", -1), ("lr", 0.0), ("ema_decay", 1.0),
                                          ("precision", "fp8"), ("workers", -1), ("max_minutes", 0.0),
                                          ("lr", float("inf")), ("sigma", float("nan")), ("workers", True),
-                                         ("threads", 1.5), ("threads", True), ("landmark_weight", float("inf"))])
+                                         ("threads", 1.5), ("threads", True), ("landmark_weight", float("inf")),
+                                         ("seed", -1), ("seed", 2**63), ("seed", 1.5)])
 def test_bad_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         TrainConfig(data="d", out="o", **{field: value})

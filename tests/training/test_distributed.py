@@ -92,3 +92,13 @@ def test_a_bare_cuda_device_names_this_process_gpu(monkeypatch):
     monkeypatch.setenv("LOCAL_RANK", "2")
     assert init_distributed("cuda").device == torch.device("cuda:2")
     assert all(d.index is not None for d in chosen)
+
+
+@pytest.mark.parametrize("capability, expected", [((7, 0), None), ((8, 0), torch.bfloat16), ((9, 0), torch.bfloat16)])
+def test_auto_precision_takes_bf16_from_ampere_on(monkeypatch, capability, expected):
+    """torch.cuda.is_bf16_supported() also answers yes on a V100 or T4, where bf16 is emulated (slow)."""
+    from facenormals.training.distributed import resolve_precision
+
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: capability)
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
+    assert resolve_precision("auto", torch.device("cuda", 0)) is expected

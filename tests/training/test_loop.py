@@ -375,3 +375,90 @@ def test_the_command_line_resumes_with_the_checkpoint_s_schedule(tmp_path, monke
     main(["train", "--data", "unused", "--out", str(tmp_path / "run"), "--steps", "9", "--lr", "1e-3", "--quiet"])
     assert (seen[0].lr, seen[0].warmup_steps, seen[0].steps) == (5e-4, 7, 9)
     assert (seen[1].lr, seen[1].warmup_steps) == (1e-3, 7)
+
+
+def test_a_non_finite_gradient_stops_before_the_weights_and_checkpoint(tmp_path, monkeypatch):
+    """A finite loss whose gradient overflows: stepping would write NaN into the weights and then
+    into last.pt, the very checkpoint the error advises resuming from."""
+    from facenormals.training import loop
+
+    class InfGradient(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.clone()
+
+        @staticmethod
+        def backward(ctx, grad):
+            return grad * float("inf")
+
+    calls = {"n": 0}
+    real_loss = loop.normal_landmark_loss
+
+    def loss_with_an_overflow_at_the_fourth_step(*args, **kwargs):
+        total, terms = real_loss(*args, **kwargs)
+        calls["n"] += 1
+        return (InfGradient.apply(total) if calls["n"] == 4 else total), terms
+
+    monkeypatch.setattr(loop, "normal_landmark_loss", loss_with_an_overflow_at_the_fourth_step)
+    with pytest.raises(FloatingPointError, match=r"step 3: the gradient is not finite \(the loss was [\d.]+\); the "
+                                                 r"weights were not updated; lower --lr, or resume from the last "
+                                                 r"checkpoint .*last.pt \(step 2\)"):
+        train(_config(tmp_path, checkpoint_every=2), TinyHeads(16), progress=False)
+    state = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert state["step"] == 2
+    assert all(bool(torch.isfinite(t).all()) for t in [*state["model"].values(), *state["ema"].values()]
+               if t.is_floating_point())
+    monkeypatch.setattr(loop, "normal_landmark_loss", real_loss)
+    assert train(_config(tmp_path, checkpoint_every=2), TinyHeads(16), progress=False).step == 8  # resumes
+
+
+def test_the_training_data_is_no_holdout(tmp_path):
+    import json
+
+    from facenormals.data.shards import FORMAT_NAME
+    from facenormals.training.loop import _check_holdout_is_not_training_data
+
+    data = TinyHeads(8)
+    with pytest.raises(ValueError, match="holdout: the training dataset itself"):
+        train(_config(tmp_path), data, holdout=data, progress=False)
+
+    def folder(name, seed):
+        (tmp_path / name).mkdir()
+        manifest = {"format": FORMAT_NAME, "version": 1, "seed": seed, "count": 4, "shard_size": 4,
+                    "image_size": 32, "normal_scale": 32767.0, "model": {"name": "builtin"}, "generator": 2}
+        (tmp_path / name / "manifest.json").write_text(json.dumps(manifest))
+        return tmp_path / name
+
+    class Folder:  # what the check reads of a SyntheticHeadDataset
+        def __init__(self, root):
+            self.root, self.manifest = root, json.loads((root / "manifest.json").read_text())
+
+    train_root, same_seed, other_seed = folder("train", 0), folder("same", 0), folder("other", 1)
+    with pytest.raises(ValueError, match=r"holdout: .*train is the training data folder"):
+        _check_holdout_is_not_training_data(Folder(train_root), str(train_root / "." ))
+    with pytest.raises(ValueError, match=r"holdout: .*same was rendered with the training data's seed 0, generator "
+                                         r"and model: its samples are samples of the training data"):
+        _check_holdout_is_not_training_data(Folder(train_root), str(same_seed))
+    _check_holdout_is_not_training_data(Folder(train_root), str(other_seed))
+    _check_holdout_is_not_training_data(data, str(other_seed))  # a dataset without a manifest: nothing to compare
+
+
+def test_resuming_on_a_grown_dataset_says_so(tmp_path, capsys):
+    train(_config(tmp_path, steps=2), TinyHeads(8), progress=False)
+    capsys.readouterr()
+    train(_config(tmp_path, steps=3), TinyHeads(12), progress=False)
+    assert "with 12 training samples (checkpoint: 8); the epoch's sample order differs" in capsys.readouterr().out
+    train(_config(tmp_path, steps=4), TinyHeads(12), progress=False)
+    assert "training samples" not in capsys.readouterr().out
+
+
+def test_a_network_too_deep_for_the_images_is_refused_before_the_folder(tmp_path):
+    with pytest.raises(ValueError, match=r"depth: 6 stride-2 levels need images whose side is divisible by 2\*\*6 = "
+                                         r"64; the training images are 32 pixels"):
+        train(_config(tmp_path, depth=6), TinyHeads(8), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_any_seed_below_2_63_trains(tmp_path):
+    summary = train(_config(tmp_path, steps=1, seed=2 * 10**13), TinyHeads(8), progress=False)
+    assert summary.step == 1

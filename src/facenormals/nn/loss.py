@@ -21,6 +21,7 @@ def normal_landmark_loss(
     landmark_weight: float = 1.0,
     foreground_weight: float = 1.0,
     landmark_peak_weight: float = 0.0,
+    foreground_pixels: float | Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     r"""The paper's squared-L2 loss :math:`L_N + L_Z`, plus a foreground term.
 
@@ -52,6 +53,9 @@ def normal_landmark_loss(
         landmark_weight: :math:`w_Z`.
         foreground_weight: :math:`w_F`.
         landmark_peak_weight: :math:`\alpha`, the extra weight of pixels under the landmark Gaussians.
+        foreground_pixels: :math:`|\Omega|` to divide by (default: this batch's count). Data-parallel
+            training passes the global batch's count divided by the number of processes, so that
+            the average of the processes' gradients is that of the loss of the global batch.
 
     Returns:
         ``(total, terms)``: the scalar loss and the unweighted terms ``{"normals": L_N,
@@ -108,7 +112,14 @@ def normal_landmark_loss(
     mask_f = mask.to(normals.dtype)
 
     sq_err = ((normals - normals_gt) ** 2).sum(dim=1, keepdim=True)
-    loss_normals = (sq_err * mask_f).sum() / mask_f.sum().clamp(min=1.0)
+    if foreground_pixels is None:
+        count = mask_f.sum()
+    else:
+        count = torch.as_tensor(foreground_pixels, dtype=normals.dtype, device=normals.device).detach()
+        if count.numel() != 1 or not bool(torch.isfinite(count)) or float(count) < 0:
+            raise ValueError(f"foreground_pixels: expected a finite number >= 0, got {foreground_pixels!r}")
+        count = count.reshape(())
+    loss_normals = (sq_err * mask_f).sum() / count.clamp(min=1.0)
     if landmarks_gt.numel() > 0:
         sq = (output.landmarks - landmarks_gt) ** 2
         if landmark_peak_weight > 0:

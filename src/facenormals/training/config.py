@@ -91,10 +91,12 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        for name in ("warmup_steps", "workers"):
+        for name in ("warmup_steps", "workers", "seed"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
+        if self.seed >= 1 << 63:  # torch's generators take seeds below 2**64; the derived ones stay below 2**63
+            raise ValueError(f"seed: expected an integer below 2**63, got {self.seed}")
         for names, positive in ((("lr", "sigma"), True),
                                 (("weight_decay", "landmark_weight", "landmark_peak_weight", "foreground_weight"), False)):
             for name in names:

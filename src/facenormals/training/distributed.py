@@ -85,5 +85,6 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype | Non
     if precision != "auto":
         raise ValueError(f"precision: expected 'auto', 'bf16' or 'fp32', got {precision!r}")
     if device.type == "cuda":
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
+        # compute capability 8 (Ampere) or newer: is_bf16_supported() also says yes where bf16 is emulated
+        return torch.bfloat16 if torch.cuda.get_device_capability(device)[0] >= 8 else None
     return torch.bfloat16 if _cpu_has_bf16() else None

@@ -59,6 +59,11 @@ class TrainSummary:
     checkpoint: Path
 
 
+def _derived_seed(seed: int, counter: int, world_size: int = 1, rank: int = 0) -> int:
+    """The seed of epoch or step ``counter`` (and rank): below 2**63, which torch accepts, for any seed."""
+    return ((seed * 1_000_003 + counter) * world_size + rank) % (1 << 63)
+
+
 class _EpochSampler(Sampler[int]):
     """Endless, deterministic sample order: per-epoch permutations from ``(seed, epoch)``, split by rank."""
 
@@ -72,7 +77,7 @@ class _EpochSampler(Sampler[int]):
     def __iter__(self) -> Iterator[int]:
         epoch, offset = divmod(self.start, self.per_rank)
         while True:
-            g = torch.Generator().manual_seed(self.seed * 1_000_003 + epoch)
+            g = torch.Generator().manual_seed(_derived_seed(self.seed, epoch))
             order = torch.randperm(self.size, generator=g)[self.rank : self.per_rank * self.world : self.world]
             yield from order[offset:].tolist()
             epoch, offset = epoch + 1, 0
@@ -122,6 +127,32 @@ def _last_logged_step(path: Path) -> int | None:
 #: takes them from the checkpoint unless its command line gives them.
 RESUMED_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
                     "landmark_peak_weight", "foreground_weight", "sigma", "precision")
+
+
+def _check_holdout_is_not_training_data(dataset: Dataset, holdout: str) -> None:
+    """Refuse a held-out folder that is the training folder, or whose samples are training samples:
+    rendered with the same seed, generator and model, sample ``i`` of both is the same head."""
+    from facenormals.data.shards import read_manifest
+
+    held = read_manifest(holdout)
+    root, train = getattr(dataset, "root", None), getattr(dataset, "manifest", None)
+    if root is not None and Path(holdout).resolve() == Path(root).resolve():
+        raise ValueError(f"holdout: {holdout} is the training data folder; render a held-out set with another "
+                         "--seed (e.g. `facenormals synth --seed 1`)")
+    if isinstance(train, dict) and all(train.get(key) == held.get(key) for key in ("seed", "generator", "model")):
+        raise ValueError(f"holdout: {holdout} was rendered with the training data's seed {train.get('seed')}, "
+                         f"generator and model: its samples are samples of the training data {root}; render the "
+                         "held-out set with another --seed")
+
+
+def _check_depth_fits_the_images(dataset: Dataset, depth: int) -> None:
+    """Refuse, before the run folder exists, a network that halves the images more often than their size allows."""
+    size = getattr(dataset, "image_size", None)
+    if size is None:
+        size = int(dataset[0]["image"].shape[-1])
+    if size % (1 << depth):
+        raise ValueError(f"depth: {depth} stride-2 levels need images whose side is divisible by 2**{depth} = "
+                         f"{1 << depth}; the training images are {size} pixels")
 
 
 def _note_changed_settings(stored: dict, config: TrainConfig, last: Path) -> None:
@@ -210,8 +241,13 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     autocast_dtype = resolve_precision(config.precision, ctx.device)
     if dataset is None:
         dataset = _open_dataset(config.data, config, with_maps=False)
+    if holdout is dataset:
+        raise ValueError("holdout: the training dataset itself; held-out scores of training samples flatter the network")
+    if config.holdout and holdout is None:  # every rank: a refusal on rank 0 alone would hang the others
+        _check_holdout_is_not_training_data(dataset, config.holdout)
     if holdout is None and config.holdout and ctx.is_main:
         holdout = _open_dataset(config.holdout, config, with_maps=False)
+    _check_depth_fits_the_images(dataset, config.depth)
     if config.init is not None and not last.exists() and not Path(config.init).is_file():
         raise FileNotFoundError(f"init: {config.init}: no such weight file")
 
@@ -242,6 +278,10 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 same = (Path(str(old)).resolve() == Path(str(new)).resolve()) if key == "data" else old == new
                 if not same:
                     print(f"note: resuming {last} with --{key} {new} (checkpoint: {old}); {what} differ from here on")
+            stored_size = state.get("dataset_size")  # absent in checkpoints before session 14
+            if stored_size is not None and int(stored_size) != len(dataset):
+                print(f"note: resuming {last} with {len(dataset)} training samples (checkpoint: {stored_size}); "
+                      "the epoch's sample order differs from here on (samples may repeat before the epoch ends)")
             if int(state["step"]) >= config.steps:
                 print(f"note: {last} is at step {state['step']}, at or beyond --steps {config.steps}: nothing to train")
         net.load_state_dict(state["model"])
@@ -285,6 +325,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             save_checkpoint(last, {
                 "format": "facenormals-train", "config": config.to_dict(), "step": step,
                 "samples_seen": samples_seen, "world_size": ctx.world_size, "num_landmarks": net.num_landmarks,
+                "dataset_size": len(dataset),
                 "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             })
 
@@ -323,7 +364,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 batch = next(batches)
             except Exception as error:
                 raise _from_worker(error) from None
-            torch.manual_seed((config.seed * 1_000_003 + step) * ctx.world_size + ctx.rank)  # resumable augmentation
+            torch.manual_seed(_derived_seed(config.seed, step, ctx.world_size, ctx.rank))  # resumable augmentation
             images = augment(batch["image"].to(ctx.device, non_blocking=True))
             normals = batch["normals"].to(ctx.device, non_blocking=True)
             foreground = batch["foreground"].to(ctx.device, non_blocking=True)
@@ -335,9 +376,14 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             with torch.autocast(ctx.device.type, dtype=autocast_dtype or torch.bfloat16,
                                 enabled=autocast_dtype is not None):
                 prediction = model(images)
+            foreground_pixels = None
+            if ctx.distributed:  # L_N over the global batch's foreground, not each rank's (docs of the loss)
+                foreground_pixels = foreground.sum(dtype=torch.float32)
+                torch.distributed.all_reduce(foreground_pixels)
+                foreground_pixels = foreground_pixels / ctx.world_size
             loss, terms = normal_landmark_loss(_float_outputs(prediction), normals, maps, foreground,
                                                config.landmark_weight, config.foreground_weight,
-                                               config.landmark_peak_weight)
+                                               config.landmark_peak_weight, foreground_pixels)
             # Stop or fail on every rank together (a rank left alone would wait in the next all-reduce).
             timed_out = config.max_minutes is not None and time.perf_counter() - start > 60.0 * config.max_minutes
             flags = torch.tensor([bool(stop_signal), timed_out, not bool(torch.isfinite(loss.detach()))],
@@ -354,6 +400,14 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 break
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            # A finite loss can still have an overflowing gradient: stepping would put NaN in the
+            # weights and the next checkpoint. DDP averaged the gradients, so every rank agrees.
+            gradient_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), float("inf"))
+            if not bool(torch.isfinite(gradient_norm)):
+                advice = (f"lower --lr, or resume from the last checkpoint {last} (step {saved_step})"
+                          if saved_step is not None else "lower --lr")
+                raise FloatingPointError(f"step {step}: the gradient is not finite (the loss was {float(loss.detach()):.6g}); "
+                                         f"the weights were not updated; {advice}")
             optimizer.step()
             with torch.no_grad():
                 decay = min(config.ema_decay, (1.0 + step) / (10.0 + step))
