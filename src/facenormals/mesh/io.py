@@ -97,7 +97,8 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     Binary little-endian ``.ply`` files of triangles and ``.obj`` files of triangles with positive
     indices (what :func:`save_mesh` and most tools write) are read directly, ten times faster
     than through trimesh, whose import alone takes about half a second; anything else (polygons,
-    ASCII PLY, other formats) is read and triangulated by trimesh.
+    ASCII PLY, other formats) is read and triangulated by trimesh. (An OBJ with several
+    ``usemtl`` materials keeps its vertices as in the file; trimesh duplicates them per material.)
 
     Example:
         >>> import tempfile, os
@@ -126,6 +127,8 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
         points, triangles = arrays
     if len(points) == 0 or len(triangles) == 0:
         raise ValueError(f"{path}: not a triangle mesh with vertices and faces")
+    if points.ndim != 2 or points.shape[1] != 3:  # trimesh reads "v x y" lines as 2-D points
+        raise ValueError(f"{path}: expected vertices of 3 coordinates, got an array of shape {points.shape}")
     vertices = torch.as_tensor(points, dtype=dtype)
     if not bool(torch.isfinite(vertices).all()):
         raise ValueError(f"{path}: mesh has NaN or infinite vertex coordinates")
@@ -185,6 +188,8 @@ def _read_triangle_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     (_, num_vertices, vertex_properties), (_, num_faces, face_properties) = elements
     if any(len(p) != 2 or p[0] not in _PLY_TYPES for p in vertex_properties):
         return None
+    if len({name for _, name in vertex_properties}) != len(vertex_properties):
+        return None  # a property named twice
     vertex_type = np.dtype([(name, _PLY_TYPES[kind]) for kind, name in vertex_properties])
     if not {"x", "y", "z"} <= set(vertex_type.names or ()) or len(face_properties) != 1:
         return None
@@ -211,30 +216,35 @@ _OBJ_SKIPPED = {b"vt", b"vn", b"vp", b"o", b"g", b"s", b"usemtl", b"mtllib"}
 
 def _read_triangle_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """An OBJ whose faces are all triangles with positive indices (``f a b c``, ``a/t/n``, ``a//n``);
-    ``None`` for anything else (polygons, relative indices, lines, line continuations), which
-    trimesh then reads."""
+    ``None`` for anything else (polygons, relative indices, lines, line continuations, numbers that
+    are not plain decimals), which trimesh then reads."""
     with open(path, "rb") as file:
-        lines = file.read().splitlines()
-    vertex_lines = [line[2:] for line in lines if line[:2] == b"v "]
-    face_lines = [line[2:] for line in lines if line[:2] == b"f "]
-    if len(vertex_lines) + len(face_lines) < len(lines):
-        for line in lines:
-            words = line.split()
-            if words and words[0][:1] != b"#" and words[0] not in _OBJ_SKIPPED and line[:2] not in (b"v ", b"f "):
-                return None  # lines, curves, tab-separated statements, ...
-    if any(line.rstrip().endswith(b"\\") for line in lines):
-        return None  # a line continued on the next
-    if any(len(line.split()) != 3 for line in face_lines):
-        return None
-    coordinates = b" ".join(vertex_lines).split()
-    if len(coordinates) != 3 * len(vertex_lines):  # w or colours after x y z
-        coordinates = [word for line in vertex_lines for word in (line.split()[:3] + [b"nan"] * 3)[:3]]
-    indices = b" ".join(face_lines)
-    indices = [word.split(b"/", 1)[0] for word in indices.split()] if b"/" in indices else indices.split()
+        data = file.read()
+    vertex_rows, face_rows = [], []
+    for line in data.splitlines():
+        words = line.split(b"#", 1)[0].split()
+        if not words:
+            continue
+        if words[-1].endswith(b"\\"):
+            return None  # continued on the next line
+        key = words[0]
+        if key in (b"v", b"f") and b"_" in line:
+            return None  # "1_0" parses as 10
+        if key == b"v":
+            if not 4 <= len(words) <= 8:  # x y z, then w or r g b (or w r g b)
+                return None
+            vertex_rows.append(words[1:])
+        elif key == b"f":
+            if len(words) != 4:
+                return None  # a polygon: trimesh triangulates it
+            face_rows.append([word.split(b"/", 1)[0] for word in words[1:]])
+        elif key not in _OBJ_SKIPPED:
+            return None  # lines, curves, ...
     try:
-        points = np.array(coordinates, dtype=np.float64).reshape(-1, 3)
-        triangles = np.array(indices, dtype=np.int64).reshape(-1, 3)
-    except ValueError:
+        numbers = [np.array(row, dtype=np.float64) for row in vertex_rows]  # every word of a v line is a number
+        points = np.array([row[:3] for row in numbers], dtype=np.float64).reshape(-1, 3)
+        triangles = np.array(face_rows, dtype=np.int64).reshape(-1, 3)
+    except (ValueError, OverflowError):
         return None  # not numbers: trimesh's reading and errors
     if triangles.size and triangles.min() < 1:
         return None
