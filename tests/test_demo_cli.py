@@ -222,3 +222,22 @@ def test_a_closed_stdout_exits_quietly_with_sigpipe_status():
     finally:
         os.close(write_end)
     assert run.returncode == 141 and run.stderr == ""
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_an_error(monkeypatch, capsys):
+    """Only a closed stdout exits quietly; a broken pipe elsewhere (a helper process, a socket) is an
+    error like any other, and stdout stays usable (main() may be called from Python)."""
+    import facenormals.cli as cli
+
+    def broken(args):
+        raise BrokenPipeError(32, "Broken pipe to a helper process")
+
+    parser = cli.build_parser()
+    real_parse = parser.parse_args
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    monkeypatch.setattr(parser, "parse_args", lambda argv: (lambda a: (setattr(a, "func", broken), a)[1])(real_parse(argv)))
+    assert cli.main(["models", "list"]) == 1
+    captured = capsys.readouterr()
+    assert "facenormals models: error: [Errno 32] Broken pipe to a helper process" in captured.err
+    print("still here")
+    assert capsys.readouterr().out == "still here\n"

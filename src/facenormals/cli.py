@@ -361,14 +361,40 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"facenormals {args.command}: interrupted (files already written are kept; rerun to resume "
               "where that applies)", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # the reader of stdout went away (`facenormals models show X | head`)
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
-        return 141  # 128 + SIGPIPE, as a shell reports a command killed by it
+    except BrokenPipeError as error:
+        if _stdout_is_broken():  # its reader went away (`facenormals models show X | head`): exit quietly
+            return 141  # 128 + SIGPIPE, as a shell reports a command killed by it
+        if os.environ.get("FACENORMALS_TRACEBACK", "") not in ("", "0"):
+            raise
+        print(f"facenormals {args.command}: error: {error}", file=sys.stderr)
+        return 1
     except (ValueError, OSError, RuntimeError, ArithmeticError) as error:
         if os.environ.get("FACENORMALS_TRACEBACK", "") not in ("", "0"):
             raise
         print(f"facenormals {args.command}: error: {error}", file=sys.stderr)
         return 1
+
+
+def _stdout_is_broken() -> bool:
+    """Whether stdout is a pipe whose reader has gone (poll reports an error on its write end,
+    without writing); if so, stdout is pointed at /dev/null so that the interpreter's final flush
+    raises no second error. Without poll (Windows) a broken pipe is taken to be stdout's."""
+    import select
+
+    try:
+        descriptor = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a file (a StringIO): the broken pipe is another
+        return False
+    try:
+        poller = select.poll()
+        poller.register(descriptor, select.POLLOUT)
+        events = dict(poller.poll(0)).get(descriptor, 0)
+        broken = bool(events & (select.POLLERR | select.POLLHUP))
+    except (AttributeError, OSError):
+        broken = True
+    if broken:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), descriptor)
+    return broken
 
 
 if __name__ == "__main__":

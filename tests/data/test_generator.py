@@ -302,6 +302,8 @@ def test_wider_identity_range(generator):
         ({"focal": (120.0, float("inf"))}, r"focal: expected 0 < low <= high < inf"),
         ({"focal": ("120", "800")}, r"focal: expected a \(low, high\) pair of numbers"),
         ({"num_lights": (1.5, 2)}, r"num_lights: expected integers, got \(1.5, 2\)"),
+        ({"num_lights": (1, float("inf"))}, r"num_lights: expected integers, got \(1, inf\)"),
+        ({"num_lights": (float("nan"), 2)}, r"num_lights: expected integers, got \(nan, 2\)"),
         ({"background_folders": "photos"}, r"background_folders: expected a tuple of folders, got the single str "
                                            r"'photos'"),
     ],

@@ -102,3 +102,18 @@ def test_auto_precision_takes_bf16_from_ampere_on(monkeypatch, capability, expec
     monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: capability)
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
     assert resolve_precision("auto", torch.device("cuda", 0)) is expected
+
+
+def test_the_global_foreground_is_counted_as_the_loss_counts_it():
+    """A soft (float) foreground counts its pixels > 0.5, as normal_landmark_loss masks them."""
+    import torch.distributed as dist
+
+    from facenormals.training.loop import _foreground_per_rank
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{_free_port()}", rank=0, world_size=1)
+    try:
+        soft = torch.tensor([0.2, 0.6, 1.0, 0.5, 0.9]).view(1, 1, 1, 5)
+        assert float(_foreground_per_rank(soft, 2)) == 1.5  # 3 pixels over 2 ranks
+        assert float(_foreground_per_rank(soft > 0.5, 1)) == 3.0
+    finally:
+        dist.destroy_process_group()

@@ -292,13 +292,14 @@ def test_a_finished_run_killed_during_its_final_evaluation_evaluates_on_rerun(tm
 
 
 def test_ctrl_c_interrupts_the_final_evaluation(tmp_path, monkeypatch):
-    import os
     import signal
 
     import facenormals.training.loop as loop
 
     def interrupted(*args, **kwargs):
-        os.kill(os.getpid(), signal.SIGINT)
+        # raise_signal delivers to this thread; os.kill may deliver to another thread of the process
+        # (torch's, gloo's), and the main thread can reach the next line before the handler runs
+        signal.raise_signal(signal.SIGINT)
         raise AssertionError("SIGINT was swallowed")
 
     monkeypatch.setattr(loop, "evaluate_network", interrupted)
@@ -453,9 +454,19 @@ def test_resuming_on_a_grown_dataset_says_so(tmp_path, capsys):
 
 
 def test_a_network_too_deep_for_the_images_is_refused_before_the_folder(tmp_path):
-    with pytest.raises(ValueError, match=r"depth: 6 stride-2 levels need images whose side is divisible by 2\*\*6 = "
-                                         r"64; the training images are 32 pixels"):
+    with pytest.raises(ValueError, match=r"depth: 6 stride-2 levels need images whose sides are divisible by "
+                                         r"2\*\*6 = 64; the training images are 32x32 pixels"):
         train(_config(tmp_path, depth=6), TinyHeads(8), progress=False)
+
+    class Wide(TinyHeads):  # 16x32 images: the height does not fit a depth of 5
+        def __getitem__(self, i):
+            item = dict(super().__getitem__(i))
+            for key in ("image", "normals", "foreground"):
+                item[key] = item[key][..., :16, :]
+            return item
+
+    with pytest.raises(ValueError, match=r"the training images are 16x32 pixels"):
+        train(_config(tmp_path, depth=5), Wide(8), progress=False)
     assert not (tmp_path / "run").exists()
 
 

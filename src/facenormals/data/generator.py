@@ -138,7 +138,7 @@ class SynthConfig:
             raise ValueError(f"focal: expected 0 < low <= high < inf, got {self.focal}")
         if not 1000.0 <= self.temperature[0] <= self.temperature[1] <= 40000.0:  # color_temperature's range
             raise ValueError(f"temperature: expected 1000 <= low <= high <= 40000 kelvin, got {self.temperature}")
-        if any(int(v) != v for v in self.num_lights):
+        if any(not math.isfinite(v) or int(v) != v for v in self.num_lights):
             raise ValueError(f"num_lights: expected integers, got {self.num_lights}")
         if isinstance(self.background_folders, (str, Path)):
             raise ValueError(f"background_folders: expected a tuple of folders, got the single "

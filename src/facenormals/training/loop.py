@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Iterator
 
 import torch
+from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from facenormals.core.files import PART, atomic_write
@@ -145,14 +146,22 @@ def _check_holdout_is_not_training_data(dataset: Dataset, holdout: str) -> None:
                          "held-out set with another --seed")
 
 
+def _foreground_per_rank(foreground: Tensor, world_size: int) -> Tensor:
+    """The global batch's foreground pixels (counted as the loss counts them) divided by the number
+    of processes: each rank's L_N divided by it averages, over the ranks, to the global batch's L_N."""
+    mask = foreground if foreground.dtype == torch.bool else foreground > 0.5
+    count = mask.sum(dtype=torch.float32)
+    torch.distributed.all_reduce(count)
+    return count / world_size
+
+
 def _check_depth_fits_the_images(dataset: Dataset, depth: int) -> None:
     """Refuse, before the run folder exists, a network that halves the images more often than their size allows."""
     size = getattr(dataset, "image_size", None)
-    if size is None:
-        size = int(dataset[0]["image"].shape[-1])
-    if size % (1 << depth):
-        raise ValueError(f"depth: {depth} stride-2 levels need images whose side is divisible by 2**{depth} = "
-                         f"{1 << depth}; the training images are {size} pixels")
+    height, width = (size, size) if isinstance(size, int) else tuple(dataset[0]["image"].shape[-2:])
+    if height % (1 << depth) or width % (1 << depth):
+        raise ValueError(f"depth: {depth} stride-2 levels need images whose sides are divisible by 2**{depth} = "
+                         f"{1 << depth}; the training images are {height}x{width} pixels")
 
 
 def _note_changed_settings(stored: dict, config: TrainConfig, last: Path) -> None:
@@ -376,11 +385,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             with torch.autocast(ctx.device.type, dtype=autocast_dtype or torch.bfloat16,
                                 enabled=autocast_dtype is not None):
                 prediction = model(images)
-            foreground_pixels = None
-            if ctx.distributed:  # L_N over the global batch's foreground, not each rank's (docs of the loss)
-                foreground_pixels = foreground.sum(dtype=torch.float32)
-                torch.distributed.all_reduce(foreground_pixels)
-                foreground_pixels = foreground_pixels / ctx.world_size
+            # L_N over the global batch's foreground, not each rank's (docs of the loss)
+            foreground_pixels = _foreground_per_rank(foreground, ctx.world_size) if ctx.distributed else None
             loss, terms = normal_landmark_loss(_float_outputs(prediction), normals, maps, foreground,
                                                config.landmark_weight, config.foreground_weight,
                                                config.landmark_peak_weight, foreground_pixels)
