@@ -303,8 +303,15 @@ def test_ctrl_c_interrupts_the_final_evaluation(tmp_path, monkeypatch):
         raise AssertionError("SIGINT was swallowed")
 
     monkeypatch.setattr(loop, "evaluate_network", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        train(_config(tmp_path, steps=2, eval_every=100), TinyHeads(8), holdout=TinyHeads(4, seed=1), progress=False)
+    # Python's own Ctrl-C handler, which a process started in the background (`cmd &` in a script,
+    # nohup) does not have: there SIGINT starts out ignored and the training restores that
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            train(_config(tmp_path, steps=2, eval_every=100), TinyHeads(8), holdout=TinyHeads(4, seed=1),
+                  progress=False)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 2  # the checkpoint came first
 
 
