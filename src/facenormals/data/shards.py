@@ -111,9 +111,7 @@ def read_manifest(root: str | Path) -> dict:
     if missing:
         raise ValueError(f"{path}: the manifest lacks {missing}")
     for key in ("count", "shard_size", "image_size"):
-        value = manifest[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{path}: {key}: expected an integer >= 1, got {value!r}")
+        _check_positive(manifest[key], f"{path}: {key}")
     scale = manifest["normal_scale"]
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
         raise ValueError(f"{path}: normal_scale: expected a finite number > 0, got {scale!r}")

@@ -338,6 +338,11 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             })
 
+    def resume_advice() -> str:
+        if saved_step is None:
+            return "lower --lr"
+        return f"lower --lr, or resume from the last checkpoint {last} (step {saved_step})"
+
     def evaluate(max_samples: int | None) -> NetworkMetrics | None:
         if holdout is None or not ctx.is_main:
             return None
@@ -397,10 +402,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             if ctx.distributed:
                 torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
             if flags[2]:
-                advice = (f"lower --lr, or resume from the last checkpoint {last} (step {saved_step})"
-                          if saved_step is not None else "lower --lr")
                 raise FloatingPointError(f"step {step}: the loss is not finite on some rank ({float(loss.detach())} "
-                                         f"here); {advice}")
+                                         f"here); {resume_advice()}")
             if flags[0] or flags[1]:
                 stopped_by = "signal" if flags[0] else "max_minutes"
                 break
@@ -410,10 +413,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             # weights and the next checkpoint. DDP averaged the gradients, so every rank agrees.
             gradient_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), float("inf"))
             if not bool(torch.isfinite(gradient_norm)):
-                advice = (f"lower --lr, or resume from the last checkpoint {last} (step {saved_step})"
-                          if saved_step is not None else "lower --lr")
                 raise FloatingPointError(f"step {step}: the gradient is not finite (the loss was {float(loss.detach()):.6g}); "
-                                         f"the weights were not updated; {advice}")
+                                         f"the weights were not updated; {resume_advice()}")
             optimizer.step()
             with torch.no_grad():
                 decay = min(config.ema_decay, (1.0 + step) / (10.0 + step))
