@@ -95,9 +95,9 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     topology (per-vertex correspondence with its model).
 
     Binary little-endian ``.ply`` files of triangles and ``.obj`` files of triangles with positive
-    indices (what :func:`save_mesh` and most tools write) are read directly, ten times faster
-    than through trimesh, whose import alone takes about half a second; anything else (polygons,
-    ASCII PLY, other formats) is read and triangulated by trimesh. (An OBJ with several
+    indices (what :func:`save_mesh` and most tools write) are read directly, without importing
+    trimesh (about half a second); anything else (polygons, ASCII PLY, other formats) is read and
+    triangulated by trimesh. (An OBJ with several
     ``usemtl`` materials keeps its vertices as in the file; trimesh duplicates them per material.)
 
     Example:
@@ -241,8 +241,9 @@ def _read_triangle_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         elif key not in _OBJ_SKIPPED:
             return None  # lines, curves, ...
     try:
-        numbers = [np.array(row, dtype=np.float64) for row in vertex_rows]  # every word of a v line is a number
-        points = np.array([row[:3] for row in numbers], dtype=np.float64).reshape(-1, 3)
+        values = np.array([word for row in vertex_rows for word in row], dtype=np.float64)  # all numbers
+        lengths = np.fromiter(map(len, vertex_rows), np.int64, len(vertex_rows))
+        points = values[(np.cumsum(lengths) - lengths)[:, None] + np.arange(3)]  # x y z of each line
         triangles = np.array(face_rows, dtype=np.int64).reshape(-1, 3)
     except (ValueError, OverflowError):
         return None  # not numbers: trimesh's reading and errors
