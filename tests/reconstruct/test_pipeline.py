@@ -412,6 +412,22 @@ def test_a_model_the_pipeline_cannot_use_fails_before_the_network(monkeypatch):
             photos.reconstruct_photos([photo], None, model=model, log=lambda message: None)
 
 
+def test_a_mistyped_model_or_weight_file_fails_before_the_detector(monkeypatch, tmp_path):
+    """The model and the weights load before the photos are read: a typo costs no detection run."""
+    from facenormals.models import ModelFileError
+    from facenormals.reconstruct import photos
+
+    def no_detector(*args, **kwargs):
+        raise AssertionError("a photo was read")
+
+    monkeypatch.setattr(photos, "prepare_view", no_detector)
+    with pytest.raises(ModelFileError, match=r"ICTT: model file not found \(model names"):
+        photos.reconstruct_photos(["a.jpg"], None, model="ICTT", log=lambda message: None)
+    with pytest.raises(FileNotFoundError, match="no-such-weights.pt: no such weight file"):
+        photos.reconstruct_photos(["a.jpg"], None, model="builtin", weights=tmp_path / "no-such-weights.pt",
+                                  log=lambda message: None)
+
+
 def test_bad_device_names_the_argument(tmp_path):
     from facenormals.reconstruct import reconstruct_photos
 

@@ -97,8 +97,9 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
                        mirror: bool = True, **fit_options: Any) -> Reconstruction:
     """Reconstruct one head from one or more photos of a person and write the results.
 
-    All photos are read and their faces found before anything is computed or written, so a bad
-    file stops the run early with a message naming it and leaves ``out_dir`` untouched.
+    The model and the weights are loaded, then all photos read and their faces found, before anything
+    is computed or written: a bad model, weight file or photo stops the run early with a message
+    naming it and leaves ``out_dir`` untouched.
 
     Args:
         paths: image files; several give a multi-view fit with one shared shape.
@@ -136,36 +137,40 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         raise ValueError(f"boxes: expected one per image ({len(paths)}), got {len(boxes)}")
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    views = []
-    for i, (path, box) in enumerate(zip(paths, boxes)):
-        view = prepare_view(path, box)
-        views.append(view)
-        log(f"[{i + 1}/{len(paths)}] {path}: {view.image_size[1]}x{view.image_size[0]}, head crop "
-            f"{view.box[2]:.0f} px at ({view.box[0]:.0f}, {view.box[1]:.0f})")
-    timings["read_and_detect"] = time.perf_counter() - start
-    for i, view in enumerate(views):  # the same photo twice (a path repeated, or a copy) adds no viewpoint
-        twin = next((j for j in range(i) if views[j].crop.shape == view.crop.shape
-                     and np.array_equal(views[j].crop, view.crop)), None)
-        if twin is not None:
-            log(f"warning: {paths[i]} shows the same head crop as {paths[twin]}: the same photo counts twice in "
-                "the multi-view fit, which then weighs that view double and adds no other viewpoint")
-
-    t = time.perf_counter()
+    # the model and the weights before the photos: a mistyped --model or --weights stops the run before
+    # the detector has gone through every photo
     model_spec = None  # what load_model reloads this model from, for params.json
+    fallback = False
     if not isinstance(model, MorphableModel):
         spec = model
         model = load_model(spec)
         model_spec = model.name if spec in ("auto", "ict", "builtin") else str(Path(spec).resolve())
-        if spec == "auto" and model.name == "builtin":
-            log("ICT-FaceKit is not installed: using the built-in head "
-                "(`facenormals models fetch ict` gets the full model)")
+        fallback = spec == "auto" and model.name == "builtin"
     if model.mean.dtype != torch.float32:  # the fit runs in float32; a caller's model stays as it is
         model = copy.deepcopy(model).to(torch.float32)
     model.check_millimetres()  # before the network runs: mm units, enough named landmarks, known names
     require_pose_landmarks(model)
     landmark_channels(model)
     net = load_weights(weights, device=device)
-    timings["load"] = time.perf_counter() - t
+    timings["load"] = time.perf_counter() - start
+
+    t = time.perf_counter()
+    views = []
+    for i, (path, box) in enumerate(zip(paths, boxes)):
+        view = prepare_view(path, box)
+        views.append(view)
+        log(f"[{i + 1}/{len(paths)}] {path}: {view.image_size[1]}x{view.image_size[0]}, head crop "
+            f"{view.box[2]:.0f} px at ({view.box[0]:.0f}, {view.box[1]:.0f})")
+    timings["read_and_detect"] = time.perf_counter() - t
+    for i, view in enumerate(views):  # the same photo twice (a path repeated, or a copy) adds no viewpoint
+        twin = next((j for j in range(i) if views[j].crop.shape == view.crop.shape
+                     and np.array_equal(views[j].crop, view.crop)), None)
+        if twin is not None:
+            log(f"warning: {paths[i]} shows the same head crop as {paths[twin]}: the same photo counts twice in "
+                "the multi-view fit, which then weighs that view double and adds no other viewpoint")
+    if fallback:
+        log("ICT-FaceKit is not installed: using the built-in head "
+            "(`facenormals models fetch ict` gets the full model)")
     log(f"model {model.name} ({model.num_vertices} vertices, {model.num_shape} shape components); "
         f"network on {device}")
 
