@@ -150,3 +150,67 @@ def test_near_and_mixed_dtypes_are_checked():
         rasterize_depth(uv, torch.ones(1, 3, dtype=torch.float64), faces, (10, 10))
     z = rasterize_depth(uv.double(), torch.full((1, 3), 1000.0001, dtype=torch.float64), faces, (10, 10))
     assert z.dtype == torch.float64 and abs(z[0, 0, 0].item() - 1000.0001) < 1e-9
+
+
+def test_exact_depth_ties_go_to_the_first_triangle_with_its_own_barycentrics():
+    """Regression: tied triangles were written with two separate index_put_ calls over duplicate pixels,
+    whose order torch leaves undefined (parallel on CUDA), so a pixel could get one triangle's index and
+    another's barycentrics. Now the triangle listed first wins, and its barycentrics come with it."""
+    uv = torch.tensor([[[1.0, 1.0], [20.0, 2.0], [3.0, 17.0]]], dtype=torch.float64).repeat(1, 2, 1)
+    depth = torch.tensor([[4.0, 6.0, 5.0]], dtype=torch.float64).repeat(1, 2)  # a copy of the triangle
+    first, second = [0, 1, 2], [3, 4, 5]  # the same triangle twice: bit-identical depths
+    values = torch.cat([torch.zeros(1, 3, 1), torch.ones(1, 3, 1)], 1).double()  # 0 on the first, 1 on the copy
+    for faces, expected in (([first, second], 0.0), ([second, first], 1.0)):
+        frags = rasterize_triangles(uv, depth, torch.tensor(faces), (20, 24))
+        assert int(frags.mask.sum()) > 100 and bool((frags.face_index[frags.mask] == 0).all())
+        shaded = interpolate_vertex_attributes(frags, torch.tensor(faces), values)[0, 0]
+        assert_close(shaded[frags.mask[0]], torch.full_like(shaded[frags.mask[0]], expected), atol=1e-12, rtol=0)
+    # on a regular grid (ties along every shared edge) the barycentrics rebuild each pixel centre
+    # from the winning triangle's corners
+    n = 12
+    gv, gu = torch.meshgrid(torch.arange(n, dtype=torch.float64), torch.arange(n, dtype=torch.float64), indexing="ij")
+    uv = torch.stack([gu, gv], -1).reshape(1, -1, 2) * 3.0
+    idx = torch.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].reshape(-1), idx[:-1, 1:].reshape(-1), idx[1:, :-1].reshape(-1), idx[1:, 1:].reshape(-1)
+    faces = torch.cat([torch.stack([a, c, b], 1), torch.stack([b, c, d], 1)])
+    frags = rasterize_triangles(uv, torch.full((1, n * n), 5.0, dtype=torch.float64), faces, (34, 34))
+    assert bool(frags.mask.all())
+    rebuilt = (frags.barycentric[0][..., None] * uv[0][faces[frags.face_index[0]]]).sum(-2)
+    gv, gu = torch.meshgrid(torch.arange(34.0, dtype=torch.float64), torch.arange(34.0, dtype=torch.float64),
+                            indexing="ij")
+    assert_close(rebuilt, torch.stack([gu, gv], -1), atol=1e-9, rtol=0)
+
+
+def test_long_thin_triangles_are_tested_on_their_own_bounding_box(monkeypatch):
+    """Regression: each triangle was tested on a square grid of its longest side, so 64 slivers of
+    2000 x 1 px took 17 GB; grids now follow each axis and go in bounded chunks, with the same result."""
+    from facenormals.render import rasterize as module
+
+    uv = torch.tensor([[[0.0, 0.0], [1990.0, 0.5], [0.0, 1.0]]], dtype=torch.float64)
+    extent = torch.tensor([[[1991.0, 2.0]]], dtype=torch.float64)
+    assert [(w, h) for _, w, h in module._buckets(extent)] == [(2048, 2)]
+    g = torch.Generator().manual_seed(1)
+    uv = torch.rand(2, 60, 2, generator=g, dtype=torch.float64) * torch.tensor([70.0, 40.0]) - 5
+    depth = torch.rand(2, 60, generator=g, dtype=torch.float64) + 1
+    faces = torch.randint(0, 60, (80, 3), generator=g)
+    whole = rasterize_triangles(uv, depth, faces, (30, 60))
+    monkeypatch.setattr(module, "_CELLS_PER_CHUNK", 64)  # many chunks per bucket, some of one triangle
+    chunked = rasterize_triangles(uv, depth, faces, (30, 60))
+    assert torch.equal(whole.face_index, chunked.face_index) and torch.equal(whole.depth, chunked.depth)
+    assert torch.equal(whole.barycentric, chunked.barycentric)
+    assert torch.equal(rasterize_depth(uv, depth, faces, (30, 60)), whole.depth)
+
+
+def test_a_mesh_without_triangles_interpolates_to_background():
+    uv, depth, faces = torch.zeros(1, 3, 2), torch.ones(1, 3), torch.zeros(0, 3, dtype=torch.long)
+    frags = rasterize_triangles(uv, depth, faces, (4, 5))
+    assert not bool(frags.mask.any())
+    assert torch.equal(interpolate_vertex_attributes(frags, faces, torch.ones(1, 3, 2)), torch.zeros(1, 2, 4, 5))
+
+
+def test_non_finite_attributes_are_named():
+    uv = torch.tensor([[[0.0, 0.0], [9.0, 0.0], [0.0, 9.0]]])
+    faces = torch.tensor([[0, 1, 2]])
+    frags = rasterize_triangles(uv, torch.ones(1, 3), faces, (10, 10))
+    with pytest.raises(ValueError, match="attributes: expected finite values, got 1 NaN"):
+        interpolate_vertex_attributes(frags, faces, torch.tensor([[[1.0], [float("nan")], [0.0]]]))

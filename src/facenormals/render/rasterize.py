@@ -15,6 +15,7 @@ from torch import Tensor
 from facenormals.core.check import (
     check_all_finite,
     check_faces,
+    check_finite,
     check_floating,
     check_image_size,
     check_nonnegative,
@@ -45,15 +46,22 @@ class Fragments:
         return self.face_index >= 0
 
 
-def _bucket_sizes(extent: Tensor) -> list[int]:
-    sizes = []
-    size = 2
-    top = int(extent.max()) if extent.numel() else 0
-    while True:
-        sizes.append(size)
-        if size > top:
-            return sizes
-        size *= 2
+# Triangles are tested against a grid of pixel centres the size of their bounding box, rounded up
+# to powers of two per axis and processed in chunks of at most this many (triangle, pixel) cells:
+# the temporaries then stay at a few hundred MB however long and thin the triangles are.
+_CELLS_PER_CHUNK = 1 << 21
+
+
+def _buckets(extent: Tensor) -> list[tuple[Tensor, int, int]]:
+    """Group the triangles with bounding boxes ``extent`` ``(B, F, 2)`` (columns, rows; 0 for the
+    skipped ones) by grid size: ``(mask (B, F), width, height)`` per occupied pair of powers of two."""
+    valid = (extent > 0).all(-1)
+    log2 = torch.ceil(torch.log2(extent.clamp(min=1.0))).long().clamp(min=1)  # grids of 2 or more
+    square = log2.amax(-1, keepdim=True)  # boxes up to 8 px: square grids, fewer buckets (less overhead)
+    log2 = torch.where(square <= 3, square, log2)
+    key = torch.where(valid, log2[..., 0] * 64 + log2[..., 1], -1)
+    present = torch.bincount(key[valid]).nonzero().flatten().tolist()  # no sort, unlike torch.unique
+    return [(key == k, 1 << (k // 64), 1 << (k % 64)) for k in present]
 
 
 def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_size: tuple[int, int],
@@ -71,7 +79,8 @@ def _check_raster_inputs(pixels: Tensor, depth: Tensor, faces: Tensor, image_siz
 def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, height: int, width: int,
                     cull_backfaces: bool, near: float, barycentric: bool):
     """Yield ``(pixel, face, z, barycentric or None)`` for every (triangle, covered pixel centre) pair,
-    in buckets of triangles by bounding-box size; ``pixel`` is the flat index ``(b H + v) W + u``."""
+    in buckets of triangles by bounding-box size (see ``_buckets``); ``pixel`` is the flat index
+    ``(b H + v) W + u``. Each pair comes once."""
     device = pixels.device
     work = torch.float64
     faces = faces.to(device=device, dtype=torch.long)
@@ -86,18 +95,11 @@ def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, he
     hi = torch.floor(tri_uv.amax(2) + 1e-9)
     hi = torch.minimum(hi, torch.tensor([width - 1, height - 1], dtype=work, device=device))
     valid &= (hi >= lo).all(-1)
-    extent = torch.where(valid[..., None], hi - lo + 1, torch.zeros_like(hi)).amax(-1)  # (B, F)
-    previous = 0
-    for size in _bucket_sizes(extent):
-        in_bucket = valid & (extent > previous) & (extent <= size)
-        previous = size
-        b_idx, f_idx = torch.nonzero(in_bucket, as_tuple=True)
-        if b_idx.numel() == 0:
-            continue
-        offsets = torch.arange(size, device=device, dtype=work)
-        du, dv = torch.meshgrid(offsets, offsets, indexing="xy")
-        pu = lo[b_idx, f_idx, 0, None] + du.reshape(1, -1)  # (T, size*size)
-        pv = lo[b_idx, f_idx, 1, None] + dv.reshape(1, -1)
+    extent = torch.where(valid[..., None], hi - lo + 1, torch.zeros_like(hi))  # (B, F, 2)
+
+    def cover(b_idx: Tensor, f_idx: Tensor, du: Tensor, dv: Tensor):
+        pu = lo[b_idx, f_idx, 0, None] + du  # (T, cells)
+        pv = lo[b_idx, f_idx, 1, None] + dv
         q0, q1, q2 = p0[b_idx, f_idx], p1[b_idx, f_idx], p2[b_idx, f_idx]
         a = area[b_idx, f_idx, None]
         w0 = ((q1[:, None, 0] - pu) * (q2[:, None, 1] - pv) - (q1[:, None, 1] - pv) * (q2[:, None, 0] - pu)) / a
@@ -110,7 +112,16 @@ def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, he
         inv_z = screen / tri_z[b_idx[t_idx], f_idx[t_idx]]
         z = 1.0 / inv_z.sum(-1)
         pix = (b_idx[t_idx] * height + pv[t_idx, k_idx].long()) * width + pu[t_idx, k_idx].long()
-        yield pix, f_idx[t_idx], z, (inv_z * z[:, None] if barycentric else None)
+        return pix, f_idx[t_idx], z, (inv_z * z[:, None] if barycentric else None)
+
+    for in_bucket, grid_w, grid_h in _buckets(extent):
+        b_all, f_all = torch.nonzero(in_bucket, as_tuple=True)
+        dv, du = torch.meshgrid(torch.arange(grid_h, device=device, dtype=work),
+                                torch.arange(grid_w, device=device, dtype=work), indexing="ij")
+        du, dv = du.reshape(1, -1), dv.reshape(1, -1)
+        chunk = max(1, _CELLS_PER_CHUNK // (grid_w * grid_h))
+        for first in range(0, b_all.numel(), chunk):
+            yield cover(b_all[first : first + chunk], f_all[first : first + chunk], du, dv)
 
 
 @torch.no_grad()
@@ -125,7 +136,8 @@ def rasterize_triangles(
     r"""Rasterise projected triangles with a z-buffer.
 
     A pixel centre ``(u, v)`` (integers, OpenCV convention) is covered by a triangle when its
-    screen-space barycentrics are all ≥ 0 (up to 1e-9). Among covering triangles the nearest wins.
+    screen-space barycentrics are all ≥ 0 (up to 1e-9). Among covering triangles the nearest wins,
+    and of those at exactly the same depth the one listed first in ``faces``.
     Barycentrics are made perspective-correct by weighting with :math:`1/z`.
 
     Args:
@@ -158,12 +170,19 @@ def rasterize_triangles(
     for pix, face, z, bary in _covered_pixels(pixels, depth, faces, batch, height, width, cull_backfaces, near, True):
         zbuf.scatter_reduce_(0, pix, z, reduce="amin")
         candidates.append((pix, face, z, bary))
-    face_index = torch.full((num_pixels,), -1, dtype=torch.long, device=device)
+    # Of the triangles at the nearest depth the one with the lowest index wins (exact ties occur on
+    # shared edges and coplanar meshes): one winner per pixel, so the writes below never collide.
+    none = faces.shape[0]
+    face_index = torch.full((num_pixels,), none, dtype=torch.long, device=device)
+    for i, (pix, face, z, bary) in enumerate(candidates):
+        nearest = z == zbuf[pix]
+        candidates[i] = (pix[nearest], face[nearest], bary[nearest])
+        face_index.scatter_reduce_(0, candidates[i][0], candidates[i][1], reduce="amin")
     barycentric = torch.zeros(num_pixels, 3, dtype=work, device=device)
-    for pix, face, z, bary in candidates:
-        win = z == zbuf[pix]
-        face_index[pix[win]] = face[win]
-        barycentric[pix[win]] = bary[win]
+    for pix, face, bary in candidates:
+        wins = face == face_index[pix]
+        barycentric[pix[wins]] = bary[wins]
+    face_index[face_index == none] = -1
     return Fragments(
         face_index=face_index.reshape(batch, height, width),
         barycentric=barycentric.reshape(batch, height, width, 3).to(pixels.dtype),
@@ -214,13 +233,17 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
     """
     dims = check_shape(attributes, ["B", "N", "C"], "attributes")
     check_floating(attributes, "attributes")  # barycentric weights would round to 0 or 1
+    check_finite(attributes, "attributes")
     check_shape(fragments.face_index, ["B", "H", "W"], "fragments.face_index", dims)
     count = check_faces(faces, dims["N"])["F"]
     if fragments.face_index.numel() and int(fragments.face_index.max()) >= count:
         raise ValueError(f"faces: expected the {int(fragments.face_index.max()) + 1} or more triangles the fragments "
                          f"were rasterised from, got {count}")
-    faces = faces.to(device=attributes.device, dtype=torch.long)
     batch = dims["B"]
+    if count == 0:  # no triangle, no foreground
+        height, width = fragments.face_index.shape[1:]
+        return attributes.new_zeros(batch, dims["C"], height, width)
+    faces = faces.to(device=attributes.device, dtype=torch.long)
     face = fragments.face_index.clamp(min=0)  # (B, H, W)
     corner = faces[face]  # (B, H, W, 3)
     b = torch.arange(batch, device=attributes.device).view(batch, 1, 1, 1)
