@@ -31,7 +31,8 @@ def visible_vertices(
 
     A vertex is visible when it is front-facing (its normal points towards the camera,
     :math:`n \cdot X_c / \lVert X_c \rVert < -\text{min\_facing}`), it projects inside the image,
-    and its depth is at most ``tolerance`` (mm) behind the z-buffer at its nearest pixel.
+    and its depth is at most ``tolerance`` (mm) behind the z-buffer at its position (read as in
+    :func:`unoccluded_points`).
 
     Args:
         pixels: projected vertices ``(u, v)``.
@@ -40,7 +41,7 @@ def visible_vertices(
         camera_points: vertices in the camera frame.
         zbuffer: the depth map of the same mesh, e.g. :func:`~facenormals.render.rasterize_depth`
             (``inf`` on background).
-        tolerance: depth slack in mm, to allow for the z-buffer's sampling at pixel centres.
+        tolerance: depth slack in mm, for the surface's curvature between pixel centres.
         min_facing: cosine margin of the front-facing test; e.g. 0.2 drops grazing vertices near
             the silhouette, whose normals a pixel grid samples poorly.
 
@@ -83,17 +84,45 @@ def _flat_index(u: Tensor, v: Tensor, height: int, width: int) -> Tensor:
     return v.clamp(0, height - 1).long() * width + u.clamp(0, width - 1).long()
 
 
+def _surface_depth(pixels: Tensor, zbuffer: Tensor) -> Tensor:
+    """The z-buffer's depth ``(B, N)`` at sub-pixel positions: ``1/z`` interpolated bilinearly between
+    the four pixel centres around each point (exact on a plane, whose ``1/z`` is affine in the
+    pixels), or the nearest pixel's depth where one of the four is background or outside the image.
+    Points that project nowhere (NaN) read the pixel ``(-1, -1)``, clamped (they are outside anyway)."""
+    batch, height, width = zbuffer.shape
+    work = torch.promote_types(zbuffer.dtype, torch.float32)
+    flat = zbuffer.to(work).reshape(batch, height * width)
+    uv = pixels.to(work).nan_to_num(nan=-1.0)
+    u0, v0 = torch.floor(uv[..., 0]), torch.floor(uv[..., 1])
+    fu, fv = uv[..., 0] - u0, uv[..., 1] - v0
+    inverse = torch.zeros_like(fu)
+    interior = (u0 >= 0) & (u0 + 1 <= width - 1) & (v0 >= 0) & (v0 + 1 <= height - 1)
+    for du, dv, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+        corner = torch.gather(flat, 1, _flat_index(u0 + du, v0 + dv, height, width))
+        interior &= torch.isfinite(corner)
+        inverse = inverse + weight / corner
+    u, v = _nearest_pixel(uv)
+    nearest = torch.gather(flat, 1, _flat_index(u, v, height, width))
+    return torch.where(interior, 1.0 / inverse, nearest)
+
+
 @torch.no_grad()
 def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance: float = 3.0) -> Tensor:
     r"""Which points project inside the image, in front of the camera, and at most ``tolerance`` (mm)
-    behind the z-buffer at their nearest pixel: the occlusion half of :func:`visible_vertices`,
-    without its front-facing test (e.g. for landmarks, whose surface may face away at the outline).
+    behind the z-buffer at their position: the occlusion half of :func:`visible_vertices`, without
+    its front-facing test (e.g. for landmarks, whose surface may face away at the outline).
+
+    The z-buffer is read at each point's sub-pixel position: its inverse depth is interpolated
+    bilinearly between the four pixel centres around the point, which is exact on a plane (whose
+    :math:`1/z` is affine in the pixel coordinates), so a sloped surface does not hide its own
+    vertices however coarse the pixels; where one of the four centres is background or outside the
+    image, the nearest pixel's depth is used.
 
     Args:
         pixels: projected points ``(u, v)``.
         depth: their camera-frame depths.
         zbuffer: a depth map (``inf`` on background), e.g. :func:`~facenormals.render.rasterize_depth`.
-        tolerance: depth slack in mm.
+        tolerance: depth slack in mm, for the surface's curvature between pixel centres.
 
     Returns:
         ``(B, N)`` bool; False for points that project nowhere (NaN pixels).
@@ -119,9 +148,7 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
         raise ValueError(f"zbuffer: expected H, W >= 1, got shape {tuple(zbuffer.shape)}")
     u, v = _nearest_pixel(pixels)
     inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)
-    index = _flat_index(u, v, height, width)
-    surface = torch.gather(zbuffer.reshape(dims["B"], height * width), 1, index)
-    return inside & (depth <= surface + tolerance)
+    return inside & (depth <= _surface_depth(pixels, zbuffer) + tolerance)
 
 
 @torch.no_grad()
