@@ -164,3 +164,17 @@ def test_half_precision_keeps_the_dtype_and_does_not_overflow(dtype):
     jac = projection_jacobian(transform_points(points, R, t).to(dtype), K.to(dtype))
     assert jac.dtype == dtype
     assert_close(jac.float(), projection_jacobian(transform_points(points, R, t), K), rtol=1e-2, atol=1e-3)
+
+
+def test_projection_jacobian_refuses_what_project_points_refuses():
+    """Regression: NaN points gave a NaN Jacobian and f <= 0 a mirrored one, silently."""
+    from facenormals.geometry import projection_jacobian
+
+    points, K = torch.tensor([[[1.0, 2.0, 500.0]]]), torch.tensor([[300.0, 64.0, 64.0]])
+    assert torch.isfinite(projection_jacobian(points, K)).all()
+    with pytest.raises(ValueError, match="camera_points: expected finite values, got 1 NaN"):
+        projection_jacobian(torch.tensor([[[1.0, float("nan"), 500.0]]]), K)
+    with pytest.raises(ValueError, match="intrinsics: expected finite values"):
+        projection_jacobian(points, torch.tensor([[float("inf"), 64.0, 64.0]]))
+    with pytest.raises(ValueError, match="intrinsics: expected focal lengths f > 0, got -300"):
+        projection_jacobian(points, torch.tensor([[-300.0, 64.0, 64.0]]))

@@ -304,3 +304,23 @@ def test_half_precision_normals_of_head_sized_faces(dtype, mode):
     normals = vertex_normals(vertices, torch.tensor([[0, 1, 2]]), mode=mode)
     assert normals.dtype == dtype
     assert_close(normals.float(), torch.tensor([[[0.0, 0, 1]] * 3]), atol=1e-3, rtol=0)
+
+
+def test_non_finite_vertices_are_named():
+    """Regression: a NaN vertex spread NaN normals over its ring, silently (documented as never NaN)."""
+    from facenormals.mesh import VertexNormalsJacobian, vertex_normals_jvp
+
+    vertices = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
+    faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    bad = vertices.clone()
+    bad[0, 3, 1] = float("nan")
+    tangents = torch.ones(2, 4, 3)
+    for call in (lambda v: vertex_normals(v, faces), VertexNormals(faces), lambda v: vertex_normals_jvp(v, faces, tangents),
+                 VertexNormalsJacobian(faces, tangents), VertexNormalsJacobian(faces, tangents).subset(torch.tensor([0]))):
+        call(vertices)
+        with pytest.raises(ValueError, match="vertices: expected finite values, got 1 NaN or infinite entries"):
+            call(bad)
+    with pytest.raises(ValueError, match="tangents: expected finite values"):
+        vertex_normals_jvp(vertices, faces, tangents * float("inf"))
+    with pytest.raises(ValueError, match="basis: expected finite values"):
+        VertexNormalsJacobian(faces, tangents * float("nan"))

@@ -56,6 +56,8 @@ def test_shading_checks_its_arguments():
         shade_normal_map(n, light=(0.0, 1.0))
     with pytest.raises(ValueError, match=r"ambient: expected a value in \[0, 1\]"):
         shade_normal_map(n, ambient=1.5)
+    with pytest.raises(ValueError, match="normal_map: expected finite values, got 1 NaN"):  # read as background before
+        shade_normal_map(torch.tensor([[[[float("nan")]], [[0.0]], [[-1.0]]]]))
 
 
 def test_light_and_ambient_must_be_numbers():

@@ -309,3 +309,15 @@ def test_torch_compile_smoke():
     compiled_grad = torch.compile(sample_bicubic_with_gradient, fullgraph=True)
     _, grad, _ = compiled_grad(image, pixels)
     assert_close(grad, sample_bicubic_with_gradient(image, pixels)[1])
+
+
+def test_a_non_finite_image_is_named_and_nan_positions_still_sample_nothing():
+    """Regression: a NaN pixel spread NaN over its 4x4 neighbourhood of samples, silently."""
+    image = torch.rand(1, 2, 6, 7, dtype=torch.float64)
+    pixels = torch.tensor([[[2.5, 3.0], [float("nan"), 1.0]]], dtype=torch.float64)
+    values, inside = sample_bicubic(image, pixels)
+    assert inside.tolist() == [[True, False]] and values[0, 1].tolist() == [0.0, 0.0]  # (B, N, C)
+    image[0, 1, 3, 2] = float("nan")
+    for sample in (sample_bicubic, sample_bicubic_with_gradient):
+        with pytest.raises(ValueError, match="image: expected finite values, got 1 NaN or infinite entries"):
+            sample(image, pixels)

@@ -17,6 +17,7 @@ from typing import Sequence
 import numpy as np
 import torch
 from torch import Tensor
+from torch._C._functorch import is_functorch_wrapped_tensor
 
 __all__ = [
     "check_all_finite",
@@ -32,6 +33,7 @@ __all__ = [
     "check_shape",
     "check_tensor",
     "environment_integer",
+    "outward_share",
     "outside_millimetre_span",
 ]
 
@@ -181,7 +183,8 @@ def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
     """Raise ``ValueError`` if ``x`` holds NaN or infinite values (only NaN with ``allow_inf``, e.g. for
     a z-buffer that is ``inf`` on background).
 
-    The check reads tensor values, so it is skipped while ``torch.compile`` traces.
+    The check reads tensor values, so it is skipped while ``torch.compile`` traces and for a tensor
+    that a ``torch.func`` transform wraps (``vmap`` cannot branch on values).
 
     Example:
         >>> check_finite(torch.tensor([1.0, float("inf")]), "zbuffer", allow_inf=True)
@@ -190,7 +193,7 @@ def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
         ...
         ValueError: zbuffer: expected no NaN values, got 1 NaN entries
     """
-    if torch.compiler.is_compiling():
+    if torch.compiler.is_compiling() or is_functorch_wrapped_tensor(x):
         return
     if not allow_inf and bool(torch.isfinite(x.sum())):  # fast path: a finite sum has no NaN or inf
         return
@@ -213,7 +216,10 @@ def check_all_finite(**tensors: Tensor) -> None:
         ...
         ValueError: angles: expected finite values, got 1 NaN or infinite entries
     """
-    if torch.compiler.is_compiling() or not tensors:
+    if torch.compiler.is_compiling():
+        return
+    tensors = {name: x for name, x in tensors.items() if not is_functorch_wrapped_tensor(x)}
+    if not tensors:
         return
     values = list(tensors.values())
     if len({x.device for x in values}) == 1:
@@ -318,6 +324,33 @@ def outside_millimetre_span(points: Tensor) -> float | None:
     span = float((flat.amax(0) - flat.amin(0)).norm())
     low, high = MILLIMETRE_SPAN
     return None if low <= span <= high else span
+
+
+#: Below this :func:`outward_share` the triangles are taken as wound clockwise seen from outside.
+INWARD_SHARE = -0.25
+
+
+def outward_share(vertices: Tensor, faces: Tensor) -> float:
+    """How consistently the triangles of a mesh face outward, in ``[-1, 1]``: the area-weighted mean
+    sign of ``n_f · (c_f − c)``, face normal against the direction from the mesh's area-weighted
+    centre ``c`` to the face's centroid ``c_f``.
+
+    A closed head is near 1 and a face mask (a cap bulging away from its centre) clearly positive
+    when wound counter-clockwise seen from outside (docs/conventions.md), and as negative when wound
+    the other way; a flat mesh gives about 0. Below :data:`INWARD_SHARE` the winding is reversed.
+
+    Example:
+        >>> vertices = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        >>> faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # a tetrahedron
+        >>> outward_share(vertices, faces), outward_share(vertices, faces[:, [0, 2, 1]])
+        (1.0, -1.0)
+    """
+    corners = vertices.detach().double()[faces.detach().long().to(vertices.device)]  # (F, 3, 3)
+    cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=1)
+    area, centroids = cross.norm(dim=1), corners.mean(1)
+    total = area.sum().clamp_min(1e-300)
+    centre = (area[:, None] * centroids).sum(0) / total
+    return float((area * torch.sign((cross * (centroids - centre)).sum(1))).sum() / total)
 
 
 def environment_integer(name: str, default: int) -> int:

@@ -24,6 +24,11 @@ def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor, **intrins
     return dims
 
 
+def _check_focal(intrinsics: Tensor) -> None:
+    if not torch.compiler.is_compiling() and not bool((intrinsics[:, 0] > 0).all()):
+        raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")
+
+
 def transform_points(points: Tensor, rotation: Tensor, translation: Tensor) -> Tensor:
     r"""Model points to the camera frame, :math:`X_c = R (p + t)`.
 
@@ -96,8 +101,7 @@ def project_points(
         (tensor([[[84., 24.]]]), tensor([[500.]]))
     """
     _check_pose(points, rotation, translation, intrinsics=intrinsics)
-    if not torch.compiler.is_compiling() and not bool((intrinsics[:, 0] > 0).all()):
-        raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")
+    _check_focal(intrinsics)
     if points.dtype in _HALF:  # f·x overflows float16 at ~65k (f = 1000 px, x = 66 mm); exact in float32
         pixels, z = project_points(points.float(), rotation.float(), translation.float(), intrinsics.float(), eps)
         return pixels.to(points.dtype), z.to(points.dtype)
@@ -126,6 +130,10 @@ def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 
         intrinsics: ``(f, u0, v0)``.
         eps: smallest depth magnitude, as in :func:`project_points`.
 
+    Raises:
+        ValueError: on wrong shapes, mismatched batch sizes, non-floating or non-finite inputs, or a
+            focal length ``f <= 0``.
+
     Shape:
         - camera_points: :math:`(B, N, 3)`; intrinsics: :math:`(B, 3)`
         - output: :math:`(B, N, 2, 3)`
@@ -139,6 +147,8 @@ def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_floating(camera_points, "camera_points")
     check_same_dtype_device(camera_points, "camera_points", intrinsics=intrinsics)
+    check_all_finite(camera_points=camera_points, intrinsics=intrinsics)
+    _check_focal(intrinsics)
     if camera_points.dtype in _HALF:
         return projection_jacobian(camera_points.float(), intrinsics.float(), eps).to(camera_points.dtype)
     x, y, z = camera_points.unbind(-1)

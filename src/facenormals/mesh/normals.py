@@ -25,8 +25,8 @@ Faces are wound counter-clockwise seen from outside, so the face normal
 
 Every normalisation is :math:`x / \max(\lVert x \rVert, \varepsilon)` (as in
 :func:`torch.nn.functional.normalize`): degenerate faces contribute (nearly) nothing in both
-modes, vertices used by no face get a zero normal, and neither values nor gradients are ever
-NaN. (The gradient through an exactly degenerate face is finite but of order
+modes, vertices used by no face get a zero normal, and for finite vertices (NaN or infinite ones are
+refused) neither values nor gradients are ever NaN. (The gradient through an exactly degenerate face is finite but of order
 :math:`1/\varepsilon`.)
 
 Implementation (no Python loop over vertices or faces): the vertices are laid out as an
@@ -48,7 +48,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_floating, check_integer, check_real, check_shape
+from facenormals.core.check import check_faces, check_finite, check_floating, check_integer, check_real, check_shape
 
 __all__ = ["VertexNormals", "vertex_normals"]
 
@@ -62,9 +62,9 @@ def _check_mode(mode: object) -> str:
 
 
 def _check_vertices(vertices: object, num_vertices: int | None = None) -> None:
-    dims = None if num_vertices is None else {"N": num_vertices}
-    check_shape(vertices, ["B", "N", 3], "vertices", dims)
+    check_shape(vertices, ["B", "N" if num_vertices is None else num_vertices, 3], "vertices")
     check_floating(vertices, "vertices")
+    check_finite(vertices, "vertices")  # a NaN vertex spreads NaN normals over its ring
 
 
 def _check_eps(eps: object) -> float:
@@ -137,8 +137,8 @@ def vertex_normals(vertices: Tensor, faces: Tensor, mode: str = "ring", eps: flo
         and device of ``vertices``.
 
     Raises:
-        ValueError: on badly shaped, non-floating vertices, non-integer or out-of-range faces, or
-            an unknown mode.
+        ValueError: on badly shaped, non-floating or non-finite vertices, non-integer or
+            out-of-range faces, or an unknown mode.
 
     Example:
         >>> vertices = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])

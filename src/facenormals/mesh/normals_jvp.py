@@ -22,8 +22,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_floating, check_shape, check_tensor
-from facenormals.mesh.normals import _check_eps
+from facenormals.core.check import check_faces, check_finite, check_floating, check_shape, check_tensor
+from facenormals.mesh.normals import _check_eps, _check_vertices
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -97,13 +97,6 @@ def _check_device(vertices: Tensor, faces: Tensor) -> None:
         raise ValueError(f"vertices: expected device {faces.device} (the module's), got {vertices.device}")
 
 
-def _check(vertices: Tensor, faces: Tensor) -> dict[str, int]:
-    dims = check_shape(vertices, ["B", "N", 3], "vertices")
-    check_floating(vertices, "vertices")
-    check_faces(faces, dims["N"])
-    return dims
-
-
 def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: float = 1e-12) -> tuple[Tensor, Tensor]:
     r"""Ring vertex normals and their directional derivatives along ``K`` vertex tangents.
 
@@ -126,14 +119,16 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
         >>> n[0, 0].tolist(), dn[0, 0, :, 0].tolist()
         ([0.0, 0.0, 1.0], [1.0, 1.0, 0.0])
     """
-    dims = _check(vertices, faces)
+    _check_vertices(vertices)
+    check_faces(faces, vertices.shape[1])
     check_tensor(tangents, "tangents")
     if tangents.dim() == 3:
-        check_shape(tangents, ["K", dims["N"], 3], "tangents")
+        check_shape(tangents, ["K", vertices.shape[1], 3], "tangents")
     else:
-        check_shape(tangents, ["B", "K", dims["N"], 3], "tangents", dims)
+        check_shape(tangents, ["B", "K", vertices.shape[1], 3], "tangents", {"B": vertices.shape[0]})
     faces = faces.to(device=vertices.device, dtype=torch.long)
     check_floating(tangents, "tangents")
+    check_finite(tangents, "tangents")
     tangents = tangents.detach().to(device=vertices.device, dtype=vertices.dtype)
     if tangents.dim() == 3:
         d_e1, d_e2 = _tangent_edges(tangents, faces)
@@ -155,8 +150,7 @@ class _SubsetJacobian:
 
     @torch.no_grad()
     def __call__(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
-        check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
-        check_floating(vertices, "vertices")
+        _check_vertices(vertices, self.num_vertices)
         _check_device(vertices, self.faces)
         d_e1, d_e2 = self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype)
         if self._work is None or self._work.dtype != d_e1.dtype or self._work.device != d_e1.device:
@@ -193,6 +187,7 @@ class VertexNormalsJacobian(nn.Module):
         super().__init__()
         dims = check_shape(basis, ["K", "N", 3], "basis")
         check_floating(basis, "basis")
+        check_finite(basis, "basis")
         check_faces(faces, dims["N"])
         faces = faces.to(torch.long)
         d_e1, d_e2 = _tangent_edges(basis, faces)
@@ -203,8 +198,7 @@ class VertexNormalsJacobian(nn.Module):
         self.register_buffer("d_e2", d_e2.contiguous(), persistent=False)
 
     def forward(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
-        check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
-        check_floating(vertices, "vertices")
+        _check_vertices(vertices, self.num_vertices)
         _check_device(vertices, self.faces)
         return _jvp(vertices, self.faces, self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype), self.eps)
 

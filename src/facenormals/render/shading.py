@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_real, check_shape
+from facenormals.core.check import check_finite, check_floating, check_real, check_shape
 from facenormals.render.normal_map import render_normal_map
 
 __all__ = ["shade_normal_map", "render_shaded"]
@@ -19,7 +19,7 @@ def shade_normal_map(normal_map: Tensor, light: tuple[float, float, float] = (0.
     stays 0.
 
     Raises:
-        ValueError: naming ``normal_map`` unless it is a floating ``(B, 3, H, W)`` tensor, ``light``
+        ValueError: naming ``normal_map`` unless it is a finite floating ``(B, 3, H, W)`` tensor, ``light``
             unless it is a non-zero finite 3-vector, ``ambient`` unless it is in [0, 1].
 
     Example:
@@ -30,6 +30,7 @@ def shade_normal_map(normal_map: Tensor, light: tuple[float, float, float] = (0.
     """
     check_shape(normal_map, ["B", 3, "H", "W"], "normal_map")
     check_floating(normal_map, "normal_map")
+    check_finite(normal_map, "normal_map")  # NaN pixels would shade as background
     try:
         direction = torch.as_tensor(light, dtype=torch.float64).reshape(-1)
     except (TypeError, ValueError, RuntimeError):

@@ -38,7 +38,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape
 
 __all__ = ["sample_bicubic", "sample_bicubic_with_gradient"]
 
@@ -87,6 +87,7 @@ def _check_inputs(image: Tensor, pixels: Tensor) -> None:
         raise ValueError(f"pixels: expected device {image.device} (the device of image), got {pixels.device}")
     if dims["H"] < 1 or dims["W"] < 1:
         raise ValueError(f"image: expected H >= 1 and W >= 1, got shape {tuple(image.shape)}")
+    check_finite(image, "image")  # a NaN pixel would spread over its 4x4 neighbourhood unnoticed
 
 
 def _taps(image: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -145,8 +146,9 @@ def sample_bicubic(image: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
         gradient.
 
     Raises:
-        ValueError: on wrong shapes, mismatched batch sizes, non-floating inputs, or ``image``
-            and ``pixels`` of different dtypes or devices.
+        ValueError: on wrong shapes, mismatched batch sizes, non-floating inputs, a non-finite
+            ``image``, or ``image`` and ``pixels`` of different dtypes or devices (NaN ``pixels``
+            are allowed: they sample nothing).
 
     Shape:
         - image: :math:`(B, C, H, W)`
