@@ -70,3 +70,19 @@ def headless_gl_or_skip() -> None:
         select_gl_platform()
     except HeadlessGLError as error:
         pytest.skip(f"no headless OpenGL: {error}")
+
+
+def damage_deflate_stream(path: Path, member: str) -> None:
+    """Make ``member`` of the zip (or ``.npz``) ``path``, stored deflated, undecompressable: its first
+    deflate block becomes one of the reserved type 3, so reading it raises ``zlib.error`` ("invalid
+    block type"), not ``BadZipFile``."""
+    import struct
+    import zipfile
+
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(member)
+    assert info.compress_type == zipfile.ZIP_DEFLATED, f"{member} is not deflated"
+    data = bytearray(path.read_bytes())
+    name_length, extra_length = struct.unpack_from("<HH", data, info.header_offset + 26)  # the local header's
+    data[info.header_offset + 30 + name_length + extra_length] = 0b111  # final block, reserved type 3
+    path.write_bytes(bytes(data))

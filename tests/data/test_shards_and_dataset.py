@@ -362,20 +362,15 @@ def test_resuming_a_dataset_of_another_generator_version_is_refused(tmp_path):
 def test_a_shard_whose_index_does_not_decompress_is_regenerated(dataset_root, tmp_path):
     """zipfile raises zlib.error (not BadZipFile) on a damaged deflate stream."""
     import shutil
-    import struct
     import zipfile
     import zlib
+
+    from tests.conftest import damage_deflate_stream
 
     root = tmp_path / "copy"
     shutil.copytree(dataset_root, root)
     path = root / "shard_00000.npz"
-    with zipfile.ZipFile(path) as archive:
-        info = archive.getinfo("index.npy")
-    data = bytearray(path.read_bytes())
-    name_length, extra_length = struct.unpack_from("<HH", data, info.header_offset + 26)  # the local header's
-    start = info.header_offset + 30 + name_length + extra_length
-    data[start] = 0b111  # the first deflate block: final, of the reserved type 3
-    path.write_bytes(bytes(data))
+    damage_deflate_stream(path, "index.npy")
     with pytest.raises(zlib.error, match="invalid block type"), zipfile.ZipFile(path) as archive:
         archive.read("index.npy")
     summary = _write(root)

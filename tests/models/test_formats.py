@@ -188,6 +188,10 @@ def test_lyhm_errors(tmp_path):
     bad_mu = GL_VERTICES_MM.reshape(-1)[:-1]
     with pytest.raises(ModelFileError, match=r"bad_mu\.mat.*shp\.mu has 125 entries, expected 3N"):
         load_lyhm(write_lyhm(tmp_path / "bad_mu.mat", mu=bad_mu[None, :]))
+    # the coordinates axis by axis, (3, N): read as interleaved they were other vertices, silently
+    with pytest.raises(ModelFileError, match=r"by_axis\.mat: shp\.mu has shape \(3, 42\).*transpose it"):
+        check_model(load_lyhm(write_lyhm(tmp_path / "by_axis.mat", mu=GL_VERTICES_MM.T)), STD_MM)
+    check_model(assert_no_warnings(load_lyhm, write_lyhm(tmp_path / "by_vertex.mat", mu=GL_VERTICES_MM)), STD_MM)
     zero_based = (CCW_FACES[:, [0, 2, 1]]).astype(np.float64)
     with pytest.raises(ModelFileError, match=r"zero_based\.mat.*1-based"):
         load_lyhm(write_lyhm(tmp_path / "zero_based.mat", faces=zero_based))
@@ -358,11 +362,33 @@ def test_bfm2017_errors(tmp_path):
 
 
 @needs_h5py
-def test_reversed_winding_warns(tmp_path):
-    """A file wound against its format's convention loads, but with a warning naming it."""
+def test_reversed_winding_is_turned_outward_with_a_warning(tmp_path):
+    """A file wound against its format's convention (e.g. BFM triangles re-saved the other way) loads
+    with outward triangles and a warning naming it; it used to load inside-out, and the fit then
+    silently returned the mean head."""
     path = write_bfm2017(tmp_path / "flipped.h5", **{"shape/representer/cells": CCW_FACES[:, [0, 2, 1]].T})
-    with pytest.warns(UserWarning, match=r"flipped\.h5.*clockwise"):
-        load_bfm2017(path)
+    with pytest.warns(UserWarning, match=r"flipped\.h5: the triangles are wound the other way.*reversed them"):
+        model = load_bfm2017(path)
+    assert torch.equal(model.faces, load_bfm2017(write_bfm2017(tmp_path / "right.h5")).faces)
+
+
+@needs_h5py
+def test_a_damaged_hdf5_structure_names_the_file(tmp_path):
+    """Regression: h5py raises RuntimeError (not OSError) for some damaged files, e.g. a local heap (the
+    link names of a group) whose data segment lies past the end of the file; it escaped as a bare
+    traceback from load_bfm2017 and load_model."""
+    import struct
+
+    from facenormals.models import load_model
+
+    path = write_bfm2017(tmp_path / "damaged.h5")
+    data = bytearray(path.read_bytes())
+    heap = data.index(b"HEAP")  # the root group's local heap: signature, version, 3 reserved, size, free list
+    struct.pack_into("<Q", data, heap + 24, 1 << 40)  # its data segment's address
+    path.write_bytes(bytes(data))
+    for load in (load_bfm2017, load_model):
+        with pytest.raises(ModelFileError, match=r"damaged\.h5: cannot read BFM \.h5 file \(RuntimeError: "):
+            load(path)
 
 
 @needs_h5py

@@ -143,6 +143,20 @@ def test_unparsable_vertex_line_names_file_and_line(raw_copy):
         load_ict_raw(raw_copy)
 
 
+def test_a_short_vertex_line_beside_a_long_one_is_not_read_as_shifted_coordinates(raw_copy):
+    """Regression: the fast path only compared the total number of numbers with 3 per line, so a line
+    with 4 (x y z w) beside one with 2 shifted the coordinates of every vertex in between."""
+    path = raw_copy / "generic_neutral_mesh.obj"
+    lines = path.read_bytes().split(b"\n")
+    index = next(i for i, line in enumerate(lines) if line.startswith(b"v "))
+    lines[index + 2] += b" 1.0"
+    lines[index + 9] = b" ".join(lines[index + 9].split()[:3])
+    path.write_bytes(b"\n".join(lines))
+    with pytest.raises(ModelFileError, match=rf"generic_neutral_mesh\.obj: line {index + 10}: cannot parse vertex "
+                                             r".*fewer than 3 coordinates"):
+        load_ict_raw(raw_copy)
+
+
 def test_unparsable_face_line_names_the_file(raw_copy):
     path = raw_copy / "generic_neutral_mesh.obj"
     data = path.read_bytes().replace(b"\nf ", b"\nf x/1 ", 1)
@@ -217,6 +231,13 @@ def test_fetch_from_source_into_cache(ict_raw, tmp_path, monkeypatch):
     assert find_ict_archive() == archive
     assert load_ict_npz(archive).num_shape == 2
     assert any("partial" in m for m in messages)
+    from facenormals.models import load_model
+
+    # the partial copy now stands in for the model everywhere: say so each time it is loaded by name
+    for spec in ("auto", "ict"):
+        with pytest.warns(UserWarning, match=r"ict_face_head\.npz: a partial ICT-FaceKit \(2 identity components and "
+                                             r"1 expressions of 100 and 53\); replace it .* --force"):
+            assert load_model(spec).num_shape == 2
 
     def no_work(*args, **kwargs):
         raise AssertionError("a cached archive must not be rebuilt")
@@ -324,6 +345,31 @@ def test_fetch_from_bad_source_leaves_no_archive(raw_copy, tmp_path):
     (raw_copy / "jawOpen.obj").write_text("v 0 0 0\n")
     with pytest.raises(ModelFileError, match=r"jawOpen\.obj"):
         fetch_ict(raw_copy, cache=tmp_path / "cache", progress=None)
+    assert not (tmp_path / "cache" / "ict" / "ict_face_head.npz").exists()
+
+
+def test_a_damaged_compressed_archive_or_repository_zip_names_the_file(ict_npz, raw_copy, tmp_path):
+    """Regression: the shared archive and GitHub's zips are deflated, and a damaged deflate stream raised
+    a bare zlib.error (and lost fetch's "delete the zip" advice)."""
+    import zipfile
+
+    from facenormals.models import ModelFileError, load_ict_npz
+    from tests.conftest import damage_deflate_stream
+
+    with zipfile.ZipFile(ict_npz) as source, zipfile.ZipFile(tmp_path / "ict.npz", "w", zipfile.ZIP_DEFLATED) as target:
+        for name in source.namelist():
+            target.writestr(name, source.read(name))
+    damage_deflate_stream(tmp_path / "ict.npz", "mean.npy")
+    with pytest.raises(ModelFileError, match=r"ict\.npz: cannot read ICT-FaceKit archive \(error: .*invalid block type"):
+        load_ict_npz(tmp_path / "ict.npz")
+
+    repository = tmp_path / "ICT-FaceKit-master.zip"
+    with zipfile.ZipFile(repository, "w", zipfile.ZIP_DEFLATED) as archive:
+        for path in raw_copy.iterdir():
+            archive.write(path, f"ICT-FaceKit-master/FaceXModel/{path.name}")
+    damage_deflate_stream(repository, "ICT-FaceKit-master/FaceXModel/generic_neutral_mesh.obj")
+    with pytest.raises(ModelFileError, match=r"generic_neutral_mesh\.obj: cannot read \(error: .*invalid block type"):
+        fetch_ict(repository, cache=tmp_path / "cache", progress=None)
     assert not (tmp_path / "cache" / "ict" / "ict_face_head.npz").exists()
 
 

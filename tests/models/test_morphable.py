@@ -117,6 +117,25 @@ def test_load_errors_name_the_file(tmp_path):
         MorphableModel.load(other)
 
 
+def test_a_damaged_compressed_model_file_names_the_file(tmp_path):
+    """Regression: a damaged deflate stream (a compressed .npz, e.g. re-saved with savez_compressed)
+    raised a bare zlib.error from deep inside numpy."""
+    import zipfile
+
+    from tests.conftest import damage_deflate_stream
+
+    plain = tmp_path / "plain.npz"
+    tiny_model().save(plain)
+    packed = tmp_path / "packed.npz"
+    with zipfile.ZipFile(plain) as source, zipfile.ZipFile(packed, "w", zipfile.ZIP_DEFLATED) as target:
+        for name in source.namelist():
+            target.writestr(name, source.read(name))
+    assert MorphableModel.load(packed).num_shape == 3  # compressed files load
+    damage_deflate_stream(packed, "mean.npy")
+    with pytest.raises(ModelFileError, match=r"packed\.npz: cannot read model file \(error: .*invalid block type"):
+        MorphableModel.load(packed)
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [
@@ -244,6 +263,25 @@ def test_a_model_in_metres_is_refused_where_millimetres_matter():
                          torch.tensor([[300.0, 63.5, 63.5]]), (128, 128))
     with pytest.raises(ValueError, match="units across"):
         MorphableModel(head.mean * 1000, head.shape_basis, head.faces).check_millimetres()  # micrometres
+
+
+def test_a_model_wound_inside_out_is_refused():
+    """Regression: triangles wound clockwise (normals pointing into the head) were accepted, and the fit
+    then matched the inward normals to nothing and returned the mean head as CONVERGED; a face region
+    derived from them was empty. A face mask (an open cap) wound outward passes."""
+    from facenormals.models import builtin_head_model
+
+    head = builtin_head_model()
+    with pytest.raises(ValueError, match=r"faces: the mean's triangles face inward .* reverse them \(faces\[:, \[0, 2, 1\]\]\)"):
+        MorphableModel(head.mean, head.shape_basis, head.faces[:, [0, 2, 1]])
+    front = head.mean[:, 2] < float(head.mean[:, 2].median())  # the front half, an open cap
+    keep = front[head.faces].all(1)
+    index = torch.full((head.num_vertices,), -1, dtype=torch.long)
+    index[front] = torch.arange(int(front.sum()))
+    cap = index[head.faces[keep]]
+    MorphableModel(head.mean[front], head.shape_basis[:, front], cap)
+    with pytest.raises(ValueError, match="face inward"):
+        MorphableModel(head.mean[front], head.shape_basis[:, front], cap[:, [0, 2, 1]])
 
 
 def test_with_annotations_warns_about_names_the_network_does_not_know():

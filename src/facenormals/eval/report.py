@@ -35,7 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import MILLIMETRE_SPAN, check_finite, check_floating, check_shape, outside_millimetre_span
+from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_finite, check_floating, check_shape,
+                                    outside_millimetre_span, outward_share)
 from facenormals.eval.align import (DEFAULT_ALIGNMENT_LANDMARKS, apply_similarity, fit_similarity,
                                     landmark_correspondences)
 from facenormals.eval.icp import icp_point_to_plane
@@ -256,12 +257,8 @@ def _check_mesh(vertices: object, faces: object, prefix: str) -> tuple[Tensor, n
         )
     # Outward normals point away from the surface's centre over most of a head's or a face's area;
     # triangles wound the other way would make the depth test hit the back of the head.
-    cross = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=1)
-    area, centroids = cross.norm(dim=1), corners.mean(1)
-    total = area.sum().clamp_min(1e-300)
-    centre = (area[:, None] * centroids).sum(0) / total
-    outward = float((area * torch.sign((cross * (centroids - centre)).sum(1))).sum() / total)
-    if outward < -0.25:
+    outward = outward_share(vertices, torch.from_numpy(triangles))
+    if outward < INWARD_SHARE:
         raise ValueError(
             f"{prefix}_faces: the triangles face inward (their normals point towards the mesh's centre over "
             f"{50 * (1 - outward):.0f} % of its area): they are wound clockwise seen from outside; "

@@ -34,14 +34,17 @@ import numpy as np
 import scipy.io
 import torch
 
+from facenormals.core.check import INWARD_SHARE, outward_share
 from facenormals.models.ict import opengl_to_model_frame
 from facenormals.models.morphable import ModelFileError, MorphableModel
 
 __all__ = ["load_bfm2009", "load_bfm2017", "load_flame", "load_lyhm"]
 
-# Errors that reading a damaged or foreign file can raise in scipy.io, h5py, pickle and numpy.
+# Errors that reading a damaged or foreign file can raise in scipy.io, h5py, pickle and numpy (h5py
+# raises RuntimeError for some damaged HDF5 structures).
 _READ_ERRORS: tuple[type[BaseException], ...] = (
     OSError,
+    RuntimeError,
     ValueError,
     EOFError,
     TypeError,
@@ -110,7 +113,13 @@ def _float_array(path: Path, value: Any, name: str, work: np.dtype) -> np.ndarra
 
 
 def _check_interleaved(path: Path, mean: np.ndarray, name: str) -> np.ndarray:
-    """``mean`` flattened, checked to hold ``x, y, z`` for each of ``N > 0`` vertices."""
+    """``mean`` flattened, checked to hold ``x, y, z`` for each of ``N > 0`` vertices: a vector (of any
+    singleton dimensions) or ``(N, 3)``; a ``(3, N)`` array holds the coordinates axis by axis and
+    would be read as the wrong vertices."""
+    extent = [size for size in mean.shape if size != 1]
+    if len(extent) > 2 or (len(extent) == 2 and extent[1] != 3):
+        raise ModelFileError(f"{path}: {name} has shape {mean.shape}, expected 3N values (x, y, z per vertex) or "
+                             "(N, 3)" + ("; it looks stored axis by axis, (3, N): transpose it" if extent[0] == 3 else ""))
     mean = mean.ravel()
     if mean.size == 0 or mean.size % 3:
         raise ModelFileError(f"{path}: {name} has {mean.size} entries, expected 3N (x, y, z per vertex)")
@@ -156,23 +165,15 @@ def _truncation(num: int | None, available: int, name: str) -> int:
     return int(num)
 
 
-def _check_orientation(path: Path, mean: np.ndarray, faces: np.ndarray) -> None:
-    """Warn if the triangles look wound clockwise (normals pointing into the head).
-
-    Uses the flux of the face normals out of the vertex centroid, ``sum_f (c_f - o) . n_f``: it is
-    three times the volume of a closed mesh and stays positive for an outward-wound face mask (a cap
-    bulging away from its centroid), so a negative value means the winding is reversed.
-    """
-    points = mean.astype(np.float64)
-    a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
-    centroid = points.mean(axis=0)
-    flux = float(np.einsum("ij,ij->", (a + b + c) / 3.0 - centroid, np.cross(b - a, c - a)))
-    if flux < 0:
-        warnings.warn(
-            f"{path}: the triangles of the loaded model seem to be wound clockwise (normals point "
-            "inwards); this file's winding may differ from the format's documented one",
-            stacklevel=3,
-        )
+def _outward_faces(path: Path, mean: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces``, reversed with a warning if they face inward: the file's triangles are then wound
+    the other way from its format's documented one (e.g. a BFM file whose ``tl`` was re-saved
+    counter-clockwise), which the loader's own reversal turned inward."""
+    if outward_share(torch.from_numpy(mean), torch.from_numpy(faces)) >= INWARD_SHARE:
+        return faces
+    warnings.warn(f"{path}: the triangles are wound the other way from the format's documented winding (their "
+                  "normals pointed into the head); reversed them", stacklevel=3)
+    return np.ascontiguousarray(faces[:, [0, 2, 1]])
 
 
 def _check_unit_norm(path: Path, basis: np.ndarray) -> None:
@@ -237,7 +238,7 @@ def _pca_model(
     mean_mm = opengl_to_model_frame(mean.reshape(num_vertices, 3), scale)
     # Unit-norm components stay unit-norm under the rotation; the unit change goes into std.
     basis_mm = opengl_to_model_frame(basis.T.reshape(keep, num_vertices, 3), 1.0)
-    _check_orientation(path, mean_mm, faces)
+    faces = _outward_faces(path, mean_mm, faces)
     try:
         return MorphableModel(
             torch.from_numpy(np.ascontiguousarray(mean_mm)).to(dtype),
@@ -727,7 +728,7 @@ def load_flame(
     elif num_expression is not None:
         raise ValueError(f"num_expression: the file has no expression components, got {num_expression!r}")
     mean = opengl_to_model_frame(template, 1000.0)
-    _check_orientation(path, mean, faces)
+    faces = _outward_faces(path, mean, faces)
     try:
         return MorphableModel(
             torch.from_numpy(np.ascontiguousarray(mean)).to(dtype),

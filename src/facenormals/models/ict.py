@@ -25,7 +25,7 @@ import torch
 
 from facenormals.core.files import atomic_write
 from facenormals.models.landmarks import ict_landmark_indices
-from facenormals.models.morphable import FACE_CROP_RADIUS_MM, ModelFileError, MorphableModel
+from facenormals.models.morphable import FACE_CROP_RADIUS_MM, NPZ_READ_ERRORS, ModelFileError, MorphableModel
 
 __all__ = ["ict_npz_from_raw", "load_ict_npz", "load_ict_raw", "opengl_to_model_frame"]
 
@@ -87,7 +87,7 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
                 arrays["face_vertex_count"] = int(data["face_vertex_count"])
     except ModelFileError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+    except NPZ_READ_ERRORS as error:
         raise ModelFileError(f"{path}: cannot read ICT-FaceKit archive ({type(error).__name__}: {error})") from error
     scale = {"cm": 10.0, "mm": 1.0, "m": 1000.0}.get(units)
     if scale is None:
@@ -159,7 +159,7 @@ class _FaceXSource:
             raise ModelFileError(f"{self.label(name)}: file not found")
         try:
             return self._read(name)
-        except (OSError, zipfile.BadZipFile, EOFError, ValueError) as error:
+        except NPZ_READ_ERRORS as error:  # the repository .zip: the same errors
             raise ModelFileError(f"{self.label(name)}: cannot read ({type(error).__name__}: {error})") from error
 
 
@@ -243,9 +243,10 @@ def _parse_obj_vertices(data: bytes, label: str, expected: int | None = None) ->
     vertex colours are dropped)."""
     _check_lfs(data, label)
     payloads = _VERTEX_LINE_RE.findall(data)
-    tokens = b" ".join(payloads).split()
+    tokens = b" ; ".join(payloads).split()  # every line has x y z exactly when each 4th token is the ";"
     vertices = None
-    if len(tokens) == 3 * len(payloads):
+    if len(tokens) == 4 * len(payloads) - 1 and tokens[3::4].count(b";") == len(payloads) - 1:
+        del tokens[3::4]
         try:
             vertices = np.array(tokens, dtype=np.float64).reshape(-1, 3)
         except ValueError:

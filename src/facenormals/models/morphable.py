@@ -6,6 +6,7 @@ import json
 import math
 import warnings
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -13,11 +14,15 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import (MILLIMETRE_SPAN, check_faces, check_finite, check_floating, check_integer,
-                                    check_shape, outside_millimetre_span)
+from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_faces, check_finite, check_floating,
+                                    check_integer, check_shape, outside_millimetre_span, outward_share)
 from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
+
+# What reading a damaged .npz can raise: a bad zip directory, a truncated member or a damaged deflate
+# stream (zlib.error), a bad .npy header (ValueError).
+NPZ_READ_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
 
 #: Radius in mm around the nose tip of the evaluation face region (the crop of common face-reconstruction
 #: benchmarks): the built-in head's, ICT-FaceKit's and :meth:`MorphableModel.with_annotations`'s default.
@@ -98,6 +103,13 @@ class MorphableModel(nn.Module):
             raise ValueError(f"faces: expected at least one triangle, got shape {tuple(faces.shape)}")
         check_finite(mean, "mean")
         check_finite(shape_basis, "shape_basis")
+        outward = outward_share(mean, faces)
+        if outward < INWARD_SHARE:  # inward normals: the fit would match them to no normal map, silently
+            raise ValueError(
+                f"faces: the mean's triangles face inward (their normals point towards its centre over "
+                f"{50 * (1 - outward):.0f} % of its area): they are wound clockwise seen from outside, facenormals "
+                "expects counter-clockwise (docs/conventions.md); reverse them (faces[:, [0, 2, 1]])"
+            )
         dtype = mean.dtype
         if shape_std is None:
             shape_std = torch.ones(dims["K"], dtype=dtype)
@@ -366,7 +378,7 @@ class MorphableModel(nn.Module):
                 arrays = {k: data[k] for k in data.files}
         except ModelFileError:
             raise
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as error:
+        except (*NPZ_READ_ERRORS, KeyError) as error:
             raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
         names = [str(n) for n in arrays.get("landmark_names", np.array([], dtype=str))]
         indices = arrays.get("landmark_indices", np.zeros(0, dtype=np.int64)).tolist()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -70,7 +71,7 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
             try:
                 with formats._h5py(path, "model").File(path, "r") as handle:
                     names = set(handle.keys())
-            except OSError:
+            except (OSError, RuntimeError):  # h5py raises both for damaged files
                 pass  # corrupt: the loader reports it
         else:
             try:
@@ -107,7 +108,12 @@ def load_model(spec: str | Path = "auto", dtype: torch.dtype = torch.float32) ->
     if spec in ("auto", "ict"):
         archive = find_ict_archive()
         if archive is not None:
-            return load_ict_npz(archive, dtype=dtype)
+            model = load_ict_npz(archive, dtype=dtype)
+            if model.num_shape < 100 or model.num_expressions < 53:  # e.g. converted from a subset
+                warnings.warn(f"{archive}: a partial ICT-FaceKit ({model.num_shape} identity components and "
+                              f"{model.num_expressions} expressions of 100 and 53); replace it with "
+                              "`facenormals models fetch ict --force`", stacklevel=2)
+            return model
         if spec == "ict":
             raise ModelFileError(
                 f"ICT-FaceKit not found (looked in $FACENORMALS_ICT, {cache_dir() / 'ict'} and shared/data); "
