@@ -206,6 +206,10 @@ def test_evaluate_needs_landmarks_for_a_prediction_with_other_triangles(tmp_path
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(landmarks)]) == 0
     out = capsys.readouterr().out
     assert "warning" not in out and "ICP converged" in out
+    # the reference, whose face region and landmarks are taken from the model by index, too: a reordered
+    # one scored 27 mm and exited 0 with a warning
+    assert main(["evaluate", str(ref), str(pred), "--model", "builtin"]) == 1
+    assert f"{pred}: has the vertex count of model 'builtin' but not its vertex order" in capsys.readouterr().err
 
 
 def test_a_closed_stdout_exits_quietly_with_sigpipe_status():

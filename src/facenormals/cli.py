@@ -102,10 +102,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     pred_v, pred_f = load_mesh(args.prediction)
     ref_v, ref_f = load_mesh(args.reference)
     model = load_model(args.model)
-    if ref_v.shape[0] != model.num_vertices:
+    if ref_v.shape[0] != model.num_vertices or not shares_vertex_order(ref_f, model.faces):
+        what = (f"has {ref_v.shape[0]} vertices but model {model.name!r} has {model.num_vertices}"
+                if ref_v.shape[0] != model.num_vertices else
+                f"has the vertex count of model {model.name!r} but not its vertex order (its triangles join other vertices)")
         raise ValueError(
-            f"{args.reference}: has {ref_v.shape[0]} vertices but model {model.name!r} has {model.num_vertices}; "
-            "the reference must share the model's topology (its face region and landmarks are used); pass --model"
+            f"{args.reference}: {what}; the reference must share the model's topology (its face region and landmarks "
+            "are used); pass --model"
         )
     if args.prediction_landmarks:
         try:

@@ -131,13 +131,12 @@ def correspondence_errors(reference_vertices: Tensor, reconstruction_vertices: T
 
 def _rotation_to_z(direction: np.ndarray) -> np.ndarray:
     """A rotation taking the unit vector ``direction`` to +z."""
-    z = np.array([0.0, 0.0, 1.0])
-    v = np.cross(direction, z)
-    c = float(direction @ z)
-    if np.linalg.norm(v) < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    if direction[2] < 0:  # the formula below divides by 1 + cos: turn about x first, then z is near +z
+        flip = np.diag([1.0, -1.0, -1.0])
+        return _rotation_to_z(flip @ direction) @ flip
+    v = np.array([direction[1], -direction[0], 0.0])  # direction x z
     k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + k + k @ k / (1.0 + c)
+    return np.eye(3) + k + k @ k / (1.0 + float(direction[2]))
 
 
 def depth_errors(

@@ -407,13 +407,14 @@ def evaluate_reconstruction(
     _check_facing(point_normals, direction)
     depth_points = points[point_normals @ direction < 0] if depth_front_facing else points
     pred_faces_t = torch.from_numpy(pred_faces)
+    surface = pred[torch.from_numpy(np.unique(pred_faces))]  # ICP pairs with the surface, not stray vertices
     results = {}
     for name, scale in (("rigid", False), ("similarity", True)):
         init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
         moved = apply_similarity(pred[pairs[:, 0]][None], *init)[0]
         alignment_rms = float((moved - ref[pairs[:, 1]]).square().sum(1).mean().sqrt())
         icp = icp_point_to_plane(
-            pred,
+            surface,
             points,
             point_normals,
             init=init,

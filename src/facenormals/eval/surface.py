@@ -85,16 +85,18 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: 
         out = np.where(region[:, None], b, out)
         region = (d1 <= 0) & (d2 <= 0)
         out = np.where(region[:, None], a, out)
-    # Zero area (relative to the edge lengths) or a non-finite result: Ericson's regions assume a
-    # proper triangle and can pick a wrong edge, so take the best point of the three edges.
+    # Near-zero area (sin² of the angle at a below 1e-8) or a non-finite result: Ericson's regions
+    # assume a proper triangle and lose their precision on slivers (up to tens of mm too far at
+    # sin² ~ 1e-22), never coming out too near: keep the nearer of his point and the best edge point.
     area2 = np.square(np.cross(ab, ac)).sum(1)
-    flat = (area2 <= 1e-24 * dot(ab, ab) * dot(ac, ac)) | ~np.isfinite(out).all(axis=1)
-    if flat.any():
-        pf, af, bf, cf = p[flat], a[flat], b[flat], c[flat]
+    thin = (area2 <= 1e-8 * dot(ab, ab) * dot(ac, ac)) | ~np.isfinite(out).all(axis=1)
+    if thin.any():
+        pf, af, bf, cf = p[thin], a[thin], b[thin], c[thin]
         candidates = np.stack([_closest_on_segments(pf, af, bf), _closest_on_segments(pf, bf, cf),
-                               _closest_on_segments(pf, cf, af)], axis=1)
-        best = np.argmin(((candidates - pf[:, None]) ** 2).sum(-1), axis=1)
-        out[flat] = candidates[np.arange(len(best)), best]
+                               _closest_on_segments(pf, cf, af), out[thin]], axis=1)
+        distance = ((candidates - pf[:, None]) ** 2).sum(-1)
+        best = np.argmin(np.where(np.isfinite(distance), distance, np.inf), axis=1)
+        out[thin] = candidates[np.arange(len(best)), best]
     return out
 
 
@@ -193,6 +195,29 @@ def closest_points_on_mesh(
     return out, np.sqrt(out_d2), out_f
 
 
+def _pairs_in_cells(query_xy: np.ndarray, lo: np.ndarray, hi: np.ndarray, cell: float,
+                    members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(query, triangle)`` pairs whose xy cells of side ``cell`` match: each triangle (bounding box
+    ``lo``–``hi``, index ``members``) is entered in the cells its box covers, each query in its own."""
+    origin = lo.min(axis=0)
+    shape = np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1
+    c0 = np.floor((lo - origin) / cell).astype(np.int64)
+    span = np.floor((hi - origin) / cell).astype(np.int64) - c0 + 1
+    count = span[:, 0] * span[:, 1]
+    tri_id = np.repeat(np.arange(len(lo)), count)
+    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    key = (c0[tri_id, 0] + offset // span[tri_id, 1]) * shape[1] + c0[tri_id, 1] + offset % span[tri_id, 1]
+    order = np.argsort(key, kind="stable")
+    key, tri_id = key[order], tri_id[order]
+    qc = np.floor((query_xy - origin) / cell).astype(np.int64)
+    inside = (qc >= 0).all(axis=1) & (qc < shape).all(axis=1)
+    qkey = np.where(inside, qc[:, 0] * shape[1] + qc[:, 1], -1)
+    start = np.searchsorted(key, qkey, side="left")
+    n = np.where(inside, np.searchsorted(key, qkey, side="right"), start) - start
+    q = np.repeat(np.arange(len(query_xy)), n)
+    return q, members[tri_id[np.repeat(start, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]]
+
+
 def intersect_lines_along_z(
     points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, front_facing: bool = False
 ) -> np.ndarray:
@@ -223,31 +248,15 @@ def intersect_lines_along_z(
     num_q = len(points)
     result = np.full(num_q, np.nan)
     extent = (hi - lo).max(axis=1)
-    cell = float(np.median(extent)) if len(extent) else 0.0
-    if not cell > 0:
-        cell = float(extent.max()) if len(extent) and extent.max() > 0 else 1.0
-    origin = lo.min(axis=0)
-    shape = np.floor((hi.max(axis=0) - origin) / cell).astype(np.int64) + 1
-    c0 = np.floor((lo - origin) / cell).astype(np.int64)
-    c1 = np.floor((hi - origin) / cell).astype(np.int64)
-    span = c1 - c0 + 1
-    count = span[:, 0] * span[:, 1]
-    tri_id = np.repeat(np.arange(len(tri)), count)
-    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    cx = c0[tri_id, 0] + offset // span[tri_id, 1]
-    cy = c0[tri_id, 1] + offset % span[tri_id, 1]
-    key = cx * shape[1] + cy
-    order = np.argsort(key, kind="stable")
-    key, tri_id = key[order], tri_id[order]
-    qc = np.floor((points[:, :2] - origin) / cell).astype(np.int64)
-    inside = (qc >= 0).all(axis=1) & (qc < shape).all(axis=1)
-    qkey = np.where(inside, qc[:, 0] * shape[1] + qc[:, 1], -1)
-    start = np.searchsorted(key, qkey, side="left")
-    stop = np.searchsorted(key, qkey, side="right")
-    stop = np.where(inside, stop, start)
-    n = stop - start
-    q = np.repeat(np.arange(num_q), n)
-    f = tri_id[np.repeat(start, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
+    positive = extent[extent > 0]
+    base = float(np.median(positive)) if len(positive) else 1.0
+    # Classes of triangle size (extent <= 2 base, <= 4 base, <= 8 base, ...), each on a grid of a quarter
+    # of its largest extent: a triangle enters at most 25 cells, however much larger than the median.
+    level = np.ceil(np.log2(np.maximum(extent / base, 2.0))).astype(np.int64)
+    pairs = [_pairs_in_cells(points[:, :2], lo[members], hi[members], base * 2.0 ** (lv - 2), members)
+             for lv in np.unique(level) for members in (np.flatnonzero(level == lv),)]
+    q = np.concatenate([pair[0] for pair in pairs]) if pairs else np.zeros(0, dtype=np.int64)
+    f = np.concatenate([pair[1] for pair in pairs]) if pairs else np.zeros(0, dtype=np.int64)
     a, b, c = tri[f, 0], tri[f, 1], tri[f, 2]
     p = points[q]
     e1, e2, d = (b - a)[:, :2], (c - a)[:, :2], (p - a)[:, :2]
