@@ -144,9 +144,9 @@ _OBJ_VARIANTS = {
     "normal indices only": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.5\nvn 0 0 1\nf 1//1 2//1 3//1\nf 2//1 4//1 3//1\n",
     "vertex colours": "v 0 0 0 1 0 0\nv 1 0 0 0 1 0\nv 0 1 0 0 0 1\nv 1 1 0.5 1 1 1\nf 1 2 3\nf 2 4 3\n",
     "windows line ends": "v 0 0 0\r\nv 1 0 0\r\nv 0 1 0\r\nv 1 1 0.5\r\nf 1 2 3\r\nf 2 4 3\r\n",
-    # read by trimesh: polygons, relative indices
     "a quad": "v 0 0 0\nv 1 0 0\nv 1 1 0.5\nv 0 1 0\nf 1 2 3 4\n",
-    "relative indices": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.5\nf -4 -3 -2\nf -3 -1 -2\n",
+    "a pentagon": "v 0 0 0\nv 1 0 0\nv 2 1 0\nv 1 2 0\nv 0 1 0\nf 1 2 3 4 5\n",
+    "relative indices": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0.5\nf -4 -3 -2\nf -3 -1 -2\nf 1 -3 3\n",
 }
 
 
@@ -158,6 +158,21 @@ def test_obj_reading_agrees_with_trimesh(tmp_path, variant):
     reference_vertices, reference_faces = _trimesh_reading(path)
     assert torch.equal(vertices, reference_vertices)
     assert torch.equal(faces, reference_faces)
+
+
+def test_polygons_of_several_materials_keep_the_files_vertices(tmp_path):
+    """Regression: such files went to trimesh, which copies the vertices per material (the raw
+    ICT-FaceKit OBJ, 26,719 v lines and 12 materials, read as 257,701 vertices), so a mesh in a model's
+    topology lost its vertex order."""
+    path = tmp_path / "two.obj"
+    path.write_text("v 0 0 0\nv 100 0 0\nv 100 100 0\nv 0 100 0\nv 0 0 100\nv 100 0 100\n"
+                    "usemtl a\nf 1 2 3 4\nusemtl b\nf 1/1 2/1 6/1 5/1\n")
+    vertices, faces = load_mesh(path, dtype=torch.float64)
+    assert vertices.shape == (6, 3) and vertices[5].tolist() == [100.0, 0.0, 100.0]
+    assert faces.tolist() == [[0, 1, 2], [2, 3, 0], [0, 1, 5], [5, 4, 0]]
+    # a relative index counts back from the last vertex read so far (trimesh counts from the file's end)
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\nv 1 1 0.5\nf -3 -1 -2\n")
+    assert load_mesh(path)[1].tolist() == [[0, 1, 2], [1, 3, 2]]
 
 
 def test_ply_reading_agrees_with_trimesh(tmp_path):

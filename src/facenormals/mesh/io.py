@@ -94,11 +94,11 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     dropping unused ones, so a mesh written by :func:`save_mesh` in an indexed format keeps its
     topology (per-vertex correspondence with its model).
 
-    Binary little-endian ``.ply`` files of triangles and ``.obj`` files of triangles with positive
-    indices (what :func:`save_mesh` and most tools write) are read directly, without importing
-    trimesh (about half a second); anything else (polygons, ASCII PLY, other formats) is read and
-    triangulated by trimesh. (An OBJ with several
-    ``usemtl`` materials keeps its vertices as in the file; trimesh duplicates them per material.)
+    Binary little-endian ``.ply`` files of triangles and ``.obj`` files of faces (what
+    :func:`save_mesh` and most tools write; polygons are split as trimesh splits them) are read
+    directly, without importing trimesh (about half a second); anything else (polygon PLY, ASCII
+    PLY, other formats) is read and triangulated by trimesh. (An OBJ with several ``usemtl``
+    materials keeps its vertices as in the file; trimesh duplicates them per material.)
 
     Example:
         >>> import tempfile, os
@@ -215,9 +215,11 @@ _OBJ_SKIPPED = {b"vt", b"vn", b"vp", b"o", b"g", b"s", b"usemtl", b"mtllib"}
 
 
 def _read_triangle_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """An OBJ whose faces are all triangles with positive indices (``f a b c``, ``a/t/n``, ``a//n``);
-    ``None`` for anything else (polygons, relative indices, lines, line continuations, numbers that
-    are not plain decimals), which trimesh then reads."""
+    """An OBJ of faces (``f a b c ...``, ``a/t/n``, ``a//n``, negative indices counting back from the
+    last vertex), polygons split as trimesh splits them (a quad ``a b c d`` into ``a b c`` and
+    ``c d a``, larger ones into a fan around the first corner); ``None`` for anything else (lines,
+    line continuations, numbers that are not plain decimals), which trimesh then reads. Unlike
+    trimesh, the vertices stay those of the ``v`` lines when several materials share them."""
     with open(path, "rb") as file:
         data = file.read()
     vertex_rows, face_rows = [], []
@@ -235,9 +237,20 @@ def _read_triangle_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
                 return None
             vertex_rows.append(words[1:])
         elif key == b"f":
-            if len(words) != 4:
-                return None  # a polygon: trimesh triangulates it
-            face_rows.append([word.split(b"/", 1)[0] for word in words[1:]])
+            if len(words) < 4:
+                return None
+            corners = [word.split(b"/", 1)[0] for word in words[1:]]
+            if b"-" in line:  # relative indices: -1 is the last vertex so far
+                try:
+                    corners = [c if int(c) > 0 else str(len(vertex_rows) + int(c) + 1).encode() for c in corners]
+                except ValueError:
+                    return None
+            if len(corners) == 3:
+                face_rows.append(corners)
+            elif len(corners) == 4:
+                face_rows += [corners[:3], [corners[2], corners[3], corners[0]]]
+            else:
+                face_rows += [[corners[0], corners[i], corners[i + 1]] for i in range(1, len(corners) - 1)]
         elif key not in _OBJ_SKIPPED:
             return None  # lines, curves, ...
     try:
