@@ -33,6 +33,14 @@ def test_dots_sit_on_the_pixel_centres():
     brightest = out.sum(2) == out.sum(2).max()
     rows, cols = np.nonzero(brightest)
     assert abs(rows.mean() - 35.5) <= 0.5 and abs(cols.mean() - 27.5) <= 0.5
+    # the intensity-weighted centre of a dot is the point's, to a tenth of a canvas pixel (integer
+    # centres rounded half to even put it 1/(2 scale) px off, right and down at scale 4)
+    for scale, point in ((4, (2.0, 3.0)), (4, (5.3, 2.6)), (8, (3.0, 4.0))):
+        out = draw_alignment(np.zeros((16, 16, 3), np.uint8), torch.tensor([point]), scale=scale).sum(2).astype(float)
+        rows, cols = np.mgrid[: out.shape[0], : out.shape[1]]
+        centre = ((cols * out).sum() / out.sum(), (rows * out).sum() / out.sum())
+        expected = [(c + 0.5) * scale - 0.5 for c in point]
+        assert np.allclose(centre, expected, atol=0.1), (scale, point, centre, expected)
 
 
 def test_points_off_the_image_or_not_finite_are_skipped(tmp_path):

@@ -84,10 +84,10 @@ def draw_alignment(
     if points.shape[0] > max_points:
         points = points[torch.linspace(0, points.shape[0] - 1, max_points).long()]
     for u, v in _on_canvas(points, scale, img.shape[:2]):
-        cv2.circle(out, (u, v), max(1, scale // 4), (255, 220, 0), -1, lineType=cv2.LINE_AA)
+        cv2.circle(out, (u, v), max(1, scale // 4) << _SHIFT, (255, 220, 0), -1, cv2.LINE_AA, _SHIFT)
     if landmark_pixels is not None:
         for u, v in _on_canvas(landmark_pixels.detach().cpu().double(), scale, img.shape[:2]):
-            cv2.circle(out, (u, v), scale, (255, 60, 60), 2, lineType=cv2.LINE_AA)
+            cv2.circle(out, (u, v), scale << _SHIFT, (255, 60, 60), 2, cv2.LINE_AA, _SHIFT)
     if path is not None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -101,8 +101,13 @@ def draw_alignment(
     return out
 
 
+#: Fractional bits of the drawn centres (OpenCV's ``shift``): dots sit at sub-pixel positions of the canvas.
+_SHIFT = 4
+
+
 def _on_canvas(points: Tensor, scale: int, size: tuple[int, int]) -> list[list[int]]:
-    """Upsampled integer centres of the finite ``points`` that land on or near the canvas.
+    """Upsampled centres of the finite ``points`` that land on or near the canvas, in fixed point
+    with :data:`_SHIFT` fractional bits.
 
     Pixel (0, 0) covers [-0.5, 0.5]; its upsampled centre is ``scale * (u + 0.5) - 0.5``.
     """
@@ -111,4 +116,4 @@ def _on_canvas(points: Tensor, scale: int, size: tuple[int, int]) -> list[list[i
     inside = torch.isfinite(centres).all(1)
     inside &= (centres[:, 0] > -margin) & (centres[:, 0] < size[1] * scale + margin)
     inside &= (centres[:, 1] > -margin) & (centres[:, 1] < size[0] * scale + margin)
-    return centres[inside].round().long().tolist()
+    return (centres[inside] * (1 << _SHIFT)).round().long().tolist()
