@@ -373,6 +373,16 @@ def test_reversed_winding_is_turned_outward_with_a_warning(tmp_path):
 
 
 @needs_h5py
+def test_num_expression_without_an_expression_model_is_refused(tmp_path):
+    """It was ignored silently (load_flame refuses it)."""
+    path = write_bfm2017(tmp_path / "bfm.h5", expressions=False)
+    with pytest.raises(ValueError, match="num_expression: the file has no expression model, got 5"):
+        load_bfm2017(path, num_expression=5)
+    with pytest.raises(ValueError, match="num_expression: expressions=False, got 5"):
+        load_bfm2017(write_bfm2017(tmp_path / "full.h5"), expressions=False, num_expression=5)
+
+
+@needs_h5py
 def test_a_damaged_hdf5_structure_names_the_file(tmp_path):
     """Regression: h5py raises RuntimeError (not OSError) for some damaged files, e.g. a local heap (the
     link names of a group) whose data segment lies past the end of the file; it escaped as a bare

@@ -92,6 +92,14 @@ def test_raw_dtype_and_repo_root(ict_raw):
     assert model.mean.dtype == torch.float32 and model.num_shape == 1
 
 
+def test_num_shape_and_dtype_are_checked_before_reading(ict_raw):
+    for bad in (1.5, True, 0):
+        with pytest.raises(ValueError, match="num_shape: expected an integer"):
+            load_ict_raw(ict_raw, num_shape=bad)
+    with pytest.raises(ValueError, match="dtype: expected a floating-point torch dtype"):
+        load_ict_raw(ict_raw, dtype=torch.int64)
+
+
 def test_num_shape_larger_than_present_raises(ict_raw):
     with pytest.raises(ModelFileError, match=r"num_shape=3 but only 2 identity files"):
         load_ict_raw(ict_raw, num_shape=3)

@@ -284,6 +284,25 @@ def test_a_model_wound_inside_out_is_refused():
         MorphableModel(head.mean[front], head.shape_basis[:, front], cap[:, [0, 2, 1]])
 
 
+def test_arguments_are_named_before_a_file_is_blamed(tmp_path):
+    """A non-floating dtype was reported as an 'inconsistent' file; metadata that JSON cannot hold
+    failed only at save time with a bare TypeError; an annotated model in metres got a face region
+    of every vertex (the 95 mm radius is in mm)."""
+    from facenormals.models import builtin_head_model
+
+    path = tmp_path / "m.npz"
+    tiny_model().save(path)
+    with pytest.raises(ValueError, match="dtype: expected a floating-point torch dtype, got torch.int32"):
+        MorphableModel.load(path, dtype=torch.int32)
+    with pytest.raises(ValueError, match="metadata: expected JSON values"):
+        MorphableModel(torch.zeros(3, 3), torch.zeros(1, 3, 3), torch.tensor([[0, 1, 2]]),
+                       metadata={"scale": np.float32(1.0)})
+    head = builtin_head_model()
+    metres = MorphableModel(head.mean / 1000, head.shape_basis / 1000, head.faces, name="metres")
+    with pytest.raises(ValueError, match="model 'metres': its mean spans 0.367 units across"):
+        metres.with_annotations(head.landmarks)
+
+
 def test_with_annotations_warns_about_names_the_network_does_not_know():
     from facenormals.models import builtin_head_model
 

@@ -37,6 +37,34 @@ def test_a_missing_ict_path_in_the_environment_is_an_error(tmp_path, monkeypatch
     monkeypatch.setenv("FACENORMALS_ICT", str(tmp_path / "nowhere.npz"))
     with pytest.raises(ModelFileError, match="nowhere.npz: FACENORMALS_ICT names a file that does not exist"):
         load_model("auto")
+    monkeypatch.setenv("FACENORMALS_ICT", str(tmp_path))  # a folder, e.g. the repository
+    with pytest.raises(ModelFileError, match=r"FACENORMALS_ICT names a folder; it must name the converted archive "
+                                             r"\(a repository is converted once with `facenormals models fetch ict --from"):
+        load_model("auto")
+
+
+def test_a_repository_root_or_its_model_folder_loads(tmp_path):
+    """load_ict_raw takes the repository's root as well as FaceXModel/; load_model said 'not found'."""
+    import shutil
+
+    from tests.models.test_ict import RAW_SUBSET
+
+    if not (RAW_SUBSET / "generic_neutral_mesh.obj").exists():
+        pytest.skip("shared raw ICT-FaceKit subset not found")
+    shutil.copytree(RAW_SUBSET, tmp_path / "ICT-FaceKit-master" / "FaceXModel")
+    for folder in (tmp_path / "ICT-FaceKit-master", tmp_path / "ICT-FaceKit-master" / "FaceXModel"):
+        assert load_model(str(folder)).num_shape == 2
+
+
+def test_a_mat_file_of_another_layout_is_named(tmp_path):
+    import numpy as np
+    import scipy.io
+
+    path = tmp_path / "BFM_model_front.mat"
+    scipy.io.savemat(path, {"meanshape": np.zeros((1, 30)), "idBase": np.zeros((30, 2))})
+    with pytest.raises(ModelFileError, match=r"BFM_model_front\.mat: neither a BFM 2009 model .* nor an LYHM one "
+                                             r"\('shp'\); it holds \['idBase', 'meanshape'\]"):
+        load_model(str(path))
 
 
 def test_a_repository_zip_names_the_conversion(tmp_path):

@@ -23,9 +23,11 @@ from typing import Callable
 import numpy as np
 import torch
 
+from facenormals.core.check import check_integer
 from facenormals.core.files import atomic_write
 from facenormals.models.landmarks import ict_landmark_indices
-from facenormals.models.morphable import FACE_CROP_RADIUS_MM, NPZ_READ_ERRORS, ModelFileError, MorphableModel
+from facenormals.models.morphable import (FACE_CROP_RADIUS_MM, NPZ_READ_ERRORS, ModelFileError, MorphableModel,
+                                         check_model_dtype)
 
 __all__ = ["ict_npz_from_raw", "load_ict_npz", "load_ict_raw", "opengl_to_model_frame"]
 
@@ -73,6 +75,7 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
         ModelFileError: if the file is missing, corrupt or lacks the expected arrays.
         ValueError: if ``num_shape`` is outside ``1..`` the number of identity components.
     """
+    check_model_dtype(dtype)
     path = Path(path)
     if not path.exists():
         raise ModelFileError(f"{path}: ICT-FaceKit archive not found")
@@ -326,6 +329,8 @@ def _read_config(source: _FaceXSource) -> dict:
 
 
 def _identity_names(source: _FaceXSource, num_shape: int | None) -> list[str]:
+    if num_shape is not None:
+        num_shape = check_integer(num_shape, "num_shape", minimum=1)
     numbers = sorted(int(m.group(1)) for m in map(_IDENTITY_RE.match, source.names) if m)
     present = 0
     while present in numbers:
@@ -340,8 +345,6 @@ def _identity_names(source: _FaceXSource, num_shape: int | None) -> list[str]:
         if present == 0:
             raise ModelFileError(f"{source.label('identity000.obj')}: file not found (no identity modes)")
         num_shape = present
-    elif num_shape < 1:
-        raise ValueError(f"num_shape: expected at least 1 (or None for all), got {num_shape}")
     elif num_shape > present:
         raise ModelFileError(
             f"{source.location}: num_shape={num_shape} but only {present} identity files "
@@ -432,6 +435,7 @@ def load_ict_raw(
             the wrong vertex count, or ``num_shape`` is larger than the number of identity files present.
         ValueError: if ``num_shape < 1``.
     """
+    check_model_dtype(dtype)
     raw = _read_ict_raw(folder, num_shape)
     return _ict_model(raw, 10.0, dtype, raw["location"])  # cm -> mm
 

@@ -35,6 +35,12 @@ class ModelFileError(ValueError):
     """A model file is missing, corrupt, truncated or of the wrong layout. The message names the file."""
 
 
+def check_model_dtype(dtype: object) -> None:
+    """Raise ``ValueError`` unless ``dtype`` is a floating torch dtype (before a file is blamed for it)."""
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise ValueError(f"dtype: expected a floating-point torch dtype, got {dtype!r}")
+
+
 class MorphableModel(nn.Module):
     r"""A linear shape model with optional expression blendshapes and named landmarks.
 
@@ -139,8 +145,14 @@ class MorphableModel(nn.Module):
         check_shape(face_region, ["N"], "face_region", dims)
         if face_region.dtype != torch.bool:
             raise ValueError(f"face_region: expected a bool tensor, got dtype {face_region.dtype}")
+        metadata = dict(metadata or {})
+        try:
+            json.dumps(metadata)  # saved as JSON
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"metadata: expected JSON values (str, int, float, bool, None, lists, dicts), "
+                             f"got {error}") from None
         self.name = name
-        self.metadata = dict(metadata or {})
+        self.metadata = metadata
         self.landmark_names = list(landmarks)
         self.expression_names = names
         self.register_buffer("mean", mean.to(dtype).contiguous())
@@ -318,6 +330,7 @@ class MorphableModel(nn.Module):
                           f"({int(self.face_region.sum())} of {self.num_vertices} vertices); pass face_region or "
                           "name the nose tip", stacklevel=2)
         elif face_region is None:
+            self.check_millimetres()  # the radius is in mm
             mean = self.mean.double()
             near = (mean - mean[int(landmarks["nose_tip"])]).norm(dim=-1) < radius
             facing = vertex_normals(mean[None], self.faces)[0, :, 2] < 0
@@ -362,6 +375,7 @@ class MorphableModel(nn.Module):
         Raises:
             ModelFileError: if the file is missing, not an ``.npz`` archive, truncated, or lacks keys.
         """
+        check_model_dtype(dtype)
         path = Path(path)
         if not path.exists():
             raise ModelFileError(f"{path}: model file not found")

@@ -29,7 +29,9 @@ def find_ict_archive() -> Path | None:
     if os.environ.get("FACENORMALS_ICT"):
         named = Path(os.environ["FACENORMALS_ICT"])
         if not named.is_file():
-            raise ModelFileError(f"{named}: FACENORMALS_ICT names a file that does not exist; fix or unset it")
+            what = ("a folder; it must name the converted archive (a repository is converted once with "
+                    f"`facenormals models fetch ict --from {named}`)" if named.is_dir() else "a file that does not exist")
+            raise ModelFileError(f"{named}: FACENORMALS_ICT names {what}; fix or unset it")
         candidates.append(named)
     candidates.append(cache_dir() / "ict" / ICT_ARCHIVE)
     repo_root = Path(__file__).resolve().parents[3]
@@ -43,8 +45,8 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
     """Dispatch a model file to its loader by extension (and, for ``.mat``/``.npz``, by its keys)."""
     from facenormals.models import formats
 
-    if path.is_dir() and (path / "generic_neutral_mesh.obj").is_file():
-        return load_ict_raw(path, dtype=dtype)
+    if path.is_dir() and any((folder / "generic_neutral_mesh.obj").is_file() for folder in (path, path / "FaceXModel")):
+        return load_ict_raw(path, dtype=dtype)  # the FaceXModel folder or the repository's root
     if not path.is_file():
         hint = "" if path.suffix or len(path.parts) > 1 else ' (model names: "ict", "builtin", "auto")'
         raise ModelFileError(f"{path}: model file not found{hint}")
@@ -80,6 +82,9 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
                 pass
         if "shapeMU" in names:
             return formats.load_bfm2009(path, dtype=dtype)
+        if names and "shp" not in names:  # readable, but neither layout
+            raise ModelFileError(f"{path}: neither a BFM 2009 model (variable 'shapeMU') nor an LYHM one ('shp'); "
+                                 f"it holds {sorted(names)[:8]}")
         return formats.load_lyhm(path, dtype=dtype)
     if suffix in (".h5", ".hdf5"):
         return formats.load_bfm2017(path, dtype=dtype)
