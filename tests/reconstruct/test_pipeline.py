@@ -65,7 +65,9 @@ def test_reconstruct_views_recovers_the_oracle_head(oracle):
     err = (fit.vertices[0] - views.vertices[0]).norm(dim=-1)
     base = (model.mean - views.vertices[0]).norm(dim=-1)
     face = model.face_region
-    assert err[face].mean() < 0.5 * base[face].mean()
+    # a wiring error (channel order, focal, pose) leaves the mean head's error or worse; the ratio of a
+    # correct fit varies with the head, 0.07-0.56 over seeds 4-19 (this one: 0.52)
+    assert err[face].mean() < 0.6 * base[face].mean()
     torch.testing.assert_close(fit.angles[0, :, 2], views.angles[0, :, 2], atol=0.03, rtol=0)
 
 
