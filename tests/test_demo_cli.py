@@ -210,6 +210,11 @@ def test_evaluate_needs_landmarks_for_a_prediction_with_other_triangles(tmp_path
     # one scored 27 mm and exited 0 with a warning
     assert main(["evaluate", str(ref), str(pred), "--model", "builtin"]) == 1
     assert f"{pred}: has the vertex count of model 'builtin' but not its vertex order" in capsys.readouterr().err
+    # a reference in the model's vertex order with only some of its triangles (a face crop) is the model's
+    crop = tmp_path / "crop.ply"
+    save_mesh(crop, model.mean, model.faces[model.face_region[model.faces].all(1)])
+    assert main(["evaluate", str(ref), str(crop), "--model", "builtin"]) == 0
+    assert main(["evaluate", str(crop), str(ref), "--model", "builtin"]) == 0
 
 
 def test_a_closed_stdout_exits_quietly_with_sigpipe_status():

@@ -102,7 +102,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     pred_v, pred_f = load_mesh(args.prediction)
     ref_v, ref_f = load_mesh(args.reference)
     model = load_model(args.model)
-    if ref_v.shape[0] != model.num_vertices or not shares_vertex_order(ref_f, model.faces):
+    if ref_v.shape[0] != model.num_vertices or not shares_vertex_order(model.faces, ref_f):  # a crop of it passes
         what = (f"has {ref_v.shape[0]} vertices but model {model.name!r} has {model.num_vertices}"
                 if ref_v.shape[0] != model.num_vertices else
                 f"has the vertex count of model {model.name!r} but not its vertex order (its triangles join other vertices)")
@@ -124,7 +124,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if outside:
             raise ValueError(f"{args.prediction_landmarks}: expected vertex indices in [0, {pred_v.shape[0]}) of "
                              f"{args.prediction}, got {outside}")
-    elif pred_v.shape[0] == model.num_vertices and shares_vertex_order(pred_f, model.faces):
+    elif pred_v.shape[0] == model.num_vertices and shares_vertex_order(model.faces, pred_f):
         pred_landmarks = model.landmarks
     else:
         what = (f"has {pred_v.shape[0]} vertices, not the model's {model.num_vertices}" if pred_v.shape[0] !=

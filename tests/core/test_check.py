@@ -114,3 +114,35 @@ def test_finite_checks_are_exact_despite_their_fast_path():
     both = torch.tensor([float("inf"), -float("inf")])  # their sum is NaN, each is infinite
     with pytest.raises(ValueError, match="got 2 NaN or infinite entries"):
         check_finite(both, "both")
+
+
+def test_outward_share_of_closed_open_and_flat_meshes():
+    """+1 / -1 for a closed mesh wound outward / inward, clearly positive for a cap, and 0 for a flat mesh
+    in any orientation (each face's sign there is rounding noise: a tilted flat square read as inward
+    in half of its orientations, and MorphableModel refused it)."""
+    import math
+
+    from facenormals.core.check import outward_share
+    from facenormals.geometry import euler_to_rotation_matrix
+    from facenormals.models import MorphableModel, builtin_head_model
+
+    head = builtin_head_model()
+    assert outward_share(head.mean, head.faces) > 0.9 and outward_share(head.mean, head.faces[:, [0, 2, 1]]) < -0.9
+    front = head.mean[:, 2] < float(head.mean[:, 2].quantile(0.3))
+    cap = head.faces[front[head.faces].all(1)]
+    assert outward_share(head.mean, cap) > 0.3
+    n = 6
+    xs = torch.linspace(-50.0, 50.0, n, dtype=torch.float64)
+    gy, gx = torch.meshgrid(xs, xs, indexing="ij")
+    flat = torch.stack([gx, gy, torch.zeros_like(gx)], -1).reshape(-1, 3)
+    idx = torch.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].reshape(-1), idx[:-1, 1:].reshape(-1), idx[1:, :-1].reshape(-1), idx[1:, 1:].reshape(-1)
+    faces = torch.cat([torch.stack([a, c, b], 1), torch.stack([b, c, d], 1)])
+    g = torch.Generator().manual_seed(0)
+    for _ in range(100):
+        angles = (torch.rand(1, 3, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
+        tilted = flat @ euler_to_rotation_matrix(angles)[0].T + 1000 * torch.rand(3, generator=g, dtype=torch.float64)
+        assert outward_share(tilted, faces) == 0.0
+        assert outward_share(tilted.float(), faces) == 0.0
+        MorphableModel(tilted, torch.zeros(1, n * n, 3, dtype=torch.float64), faces)
+    assert outward_share(torch.rand(3, 3), torch.tensor([[0, 1, 2]])) == 0.0  # one triangle: no inside

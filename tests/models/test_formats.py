@@ -376,9 +376,9 @@ def test_reversed_winding_is_turned_outward_with_a_warning(tmp_path):
 def test_num_expression_without_an_expression_model_is_refused(tmp_path):
     """It was ignored silently (load_flame refuses it)."""
     path = write_bfm2017(tmp_path / "bfm.h5", expressions=False)
-    with pytest.raises(ValueError, match="num_expression: the file has no expression model, got 5"):
+    with pytest.raises(ValueError, match=r"num_expression: expected None \(the file has no expression model\), got 5"):
         load_bfm2017(path, num_expression=5)
-    with pytest.raises(ValueError, match="num_expression: expressions=False, got 5"):
+    with pytest.raises(ValueError, match=r"num_expression: expected None \(expressions=False\), got 5"):
         load_bfm2017(write_bfm2017(tmp_path / "full.h5"), expressions=False, num_expression=5)
 
 

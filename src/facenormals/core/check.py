@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 import torch
 from torch import Tensor
-from torch._C._functorch import is_functorch_wrapped_tensor
+from torch._C._functorch import is_functorch_wrapped_tensor  # private; what torch.func itself asks
 
 __all__ = [
     "check_all_finite",
@@ -350,7 +350,13 @@ def outward_share(vertices: Tensor, faces: Tensor) -> float:
     area, centroids = cross.norm(dim=1), corners.mean(1)
     total = area.sum().clamp_min(1e-300)
     centre = (area[:, None] * centroids).sum(0) / total
-    return float((area * torch.sign((cross * (centroids - centre)).sum(1))).sum() / total)
+    away = centroids - centre
+    facing = (cross * away).sum(1)
+    # a face seen edge-on from the centre (within 1e-4 of 90 degrees, e.g. every face of a flat mesh) or
+    # at the centre (one triangle) has no side: its sign would be rounding noise, a full vote either way
+    size = float((corners.amax((0, 1)) - corners.amin((0, 1))).norm()) if len(corners) else 0.0
+    sure = facing.abs() > 1e-4 * area * away.norm(dim=1).clamp_min(1e-6 * size)
+    return float((area * torch.sign(facing) * sure).sum() / total)
 
 
 def environment_integer(name: str, default: int) -> int:

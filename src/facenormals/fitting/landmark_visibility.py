@@ -36,8 +36,8 @@ def hidden_landmarks(model: MorphableModel, rotation: Tensor, translation: Tenso
     r"""Which of ``model``'s landmarks the posed head hides: behind its own surface or outside the image.
 
     A landmark is hidden when its vertex projects outside the image or lies more than ``tolerance``
-    mm behind the z-buffer (:func:`~facenormals.render.rasterize_depth`) at its nearest pixel
-    (:func:`~facenormals.render.unoccluded_points`).
+    mm behind the z-buffer (:func:`~facenormals.render.rasterize_depth`) read at its sub-pixel
+    position (:func:`~facenormals.render.unoccluded_points`).
 
     Args:
         model: the morphable model; its ``landmark_indices`` are tested.

@@ -95,7 +95,7 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     topology (per-vertex correspondence with its model).
 
     Binary little-endian ``.ply`` files of triangles and ``.obj`` files of faces (what
-    :func:`save_mesh` and most tools write; polygons are split as trimesh splits them) are read
+    :func:`save_mesh` and most tools write; polygons are split on the diagonals trimesh uses) are read
     directly, without importing trimesh (about half a second); anything else (polygon PLY, ASCII
     PLY, other formats) is read and triangulated by trimesh. (An OBJ with several ``usemtl``
     materials keeps its vertices as in the file; trimesh duplicates them per material.)
@@ -216,8 +216,9 @@ _OBJ_SKIPPED = {b"vt", b"vn", b"vp", b"o", b"g", b"s", b"usemtl", b"mtllib"}
 
 def _read_triangle_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """An OBJ of faces (``f a b c ...``, ``a/t/n``, ``a//n``, negative indices counting back from the
-    last vertex), polygons split as trimesh splits them (a quad ``a b c d`` into ``a b c`` and
-    ``c d a``, larger ones into a fan around the first corner); ``None`` for anything else (lines,
+    last vertex), polygons split into the triangles trimesh makes of them (a quad ``a b c d`` into
+    ``a b c`` and ``c d a``, larger ones into a fan around the first corner), listed polygon by
+    polygon (trimesh lists the first triangles of all quads, then the second); ``None`` for anything else (lines,
     line continuations, numbers that are not plain decimals), which trimesh then reads. Unlike
     trimesh, the vertices stay those of the ``v`` lines when several materials share them."""
     with open(path, "rb") as file:

@@ -520,8 +520,8 @@ def load_bfm2017(
     variance = _float_array(path, arrays["shape/model/pcaVariance"], "shape/model/pcaVariance", work).ravel()
     expression_basis = None
     if num_expression is not None and not has_expr:
-        raise ValueError(f"num_expression: {'expressions=False' if not expressions else 'the file has no expression model'}"
-                         f", got {num_expression!r}")
+        why = "expressions=False" if not expressions else "the file has no expression model"
+        raise ValueError(f"num_expression: expected None ({why}), got {num_expression!r}")
     if has_expr:
         expr_mean = _float_array(path, arrays["expression/model/mean"], "expression/model/mean", work).ravel()
         expr_pcs = _float_array(path, arrays["expression/model/pcaBasis"], "expression/model/pcaBasis", work)

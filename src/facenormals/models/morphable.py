@@ -63,7 +63,9 @@ class MorphableModel(nn.Module):
             vertices).
 
     Raises:
-        ValueError: if the arrays have inconsistent shapes or indices are out of range.
+        ValueError: if the arrays have inconsistent shapes, hold NaN or infinite values, indices are out
+            of range, the mean's triangles face inward (wound clockwise seen from outside), or
+            ``metadata`` holds values JSON cannot store.
 
     Shape:
         - mean: :math:`(N, 3)`; shape_basis: :math:`(K, N, 3)`; faces: :math:`(F, 3)`
