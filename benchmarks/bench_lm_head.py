@@ -3,30 +3,52 @@
 The problem: the ICT head (11,248 vertices) with 100 shape + 6 pose parameters, fitted to the
 2D projections of a random head (22,496 pixel residuals) plus the shape prior (100 residuals).
 Both solvers get the same analytic Jacobian (torch for ours, numpy for scipy) and the same start.
+Every solver is warmed up once, then the solvers run in turn ``--repeats`` times (medians), so that
+load on the machine hits them alike. ``--threads N`` sets torch's threads *and* the BLAS/OpenMP pools
+before the libraries load: like for like is ``--threads 1`` (with two threads torch uses both cores
+while scipy's solver does not get faster).
 
-    python benchmarks/bench_lm_head.py [--repeats 5] [--dtype float64]
+    python benchmarks/bench_lm_head.py [--threads 1] [--repeats 5] [--batch 16] [--model ict]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import time
 
-import numpy as np
-import scipy
-import torch
-from scipy.optimize import least_squares
 
-from facenormals.geometry import (
+def arguments() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved runs of each solver")
+    parser.add_argument("--batch", type=int, default=16, help="batch size of the batched-throughput run")
+    parser.add_argument("--model", default="ict")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and BLAS threads (default: the libraries' choice)")
+    args = parser.parse_args()
+    if args.threads:  # before numpy, scipy and torch create their thread pools
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+    return args
+
+
+ARGS = arguments() if __name__ == "__main__" else None
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+import torch  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
+
+from facenormals.geometry import (  # noqa: E402
     euler_rotation_derivatives,
     euler_to_rotation_matrix,
     project_points,
     projection_jacobian,
 )
-from facenormals.models import load_model
-from facenormals.optim import levenberg_marquardt
+from facenormals.models import load_model  # noqa: E402
+from facenormals.optim import levenberg_marquardt  # noqa: E402
 
 PRIOR_WEIGHT = 0.4
 
@@ -53,6 +75,13 @@ class HeadProblem:
         x0[:, self.K : self.K + 3] = angles + 0.08 * torch.randn(batch, 3, generator=g, dtype=dtype)
         x0[:, self.K + 3 :] = t + 10.0 * torch.randn(batch, 3, generator=g, dtype=dtype)
         self.x0 = x0
+
+    def element(self, b: int) -> "HeadProblem":
+        """Element ``b`` of the batch as a problem of its own (the same target and start)."""
+        one = object.__new__(HeadProblem)
+        one.__dict__.update(self.__dict__)
+        one.intrinsics, one.target, one.x0 = self.intrinsics[b : b + 1], self.target[b : b + 1], self.x0[b : b + 1]
+        return one
 
     def residuals(self, x: torch.Tensor) -> torch.Tensor:
         y, angles, t = x[:, : self.K], x[:, self.K : self.K + 3], x[:, self.K + 3 :]
@@ -127,33 +156,34 @@ def numpy_problem(problem: HeadProblem, b: int):
     return fun, jac
 
 
-def median_time(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
+def interleaved(runs: dict, repeats: int) -> dict:
+    """``{name: (median seconds, last output)}`` of the callables in ``runs``: each warmed up once, then
+    all run in turn ``repeats`` times."""
+    outputs = {name: fn() for name, fn in runs.items()}  # warm-up
+    times: dict = {name: [] for name in runs}
     for _ in range(repeats):
-        start = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), out
+        for name, fn in runs.items():
+            start = time.perf_counter()
+            outputs[name] = fn()
+            times[name].append(time.perf_counter() - start)
+    return {name: (statistics.median(times[name]), outputs[name]) for name in runs}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--batch", type=int, default=16, help="batch size of the batched-throughput run")
-    parser.add_argument("--model", default="auto")
-    args = parser.parse_args()
+def main(args: argparse.Namespace) -> None:
     torch.manual_seed(0)
     model = load_model(args.model, dtype=torch.float64)
     problem = HeadProblem(model, batch=1)
     x0 = problem.x0
     print(f"machine: {platform.machine()} {platform.processor() or ''}, torch {torch.__version__} "
-          f"({torch.get_num_threads()} threads), scipy {scipy.__version__}")
+          f"({torch.get_num_threads()} threads; OMP/BLAS {os.environ.get('OMP_NUM_THREADS', 'default')}), "
+          f"scipy {scipy.__version__}")
     print(f"problem: {model.name}, {model.num_vertices} vertices, P = {x0.shape[1]}, "
           f"M = {problem.residuals(x0).shape[1]}")
 
     J_auto = torch.func.jacfwd(lambda z: problem.residuals(z[None])[0])(x0[0])
     J_err = float((problem.jacobian(x0)[0] - J_auto).abs().max() / J_auto.abs().max())
     print(f"analytic vs autograd Jacobian: max relative difference {J_err:.1e}")
+
     def ours(prob, jacobian_dtype=None):
         return levenberg_marquardt(
             prob.residuals, prob.x0, jacobian_fn=prob.jacobian, max_iterations=50, ftol=1e-8, xtol=1e-8,
@@ -161,34 +191,42 @@ def main() -> None:
         )
 
     problem32 = HeadProblem(model, batch=1, jacobian_dtype=torch.float32)
-    ours(problem)  # warm-up
-    t_ours, res = median_time(lambda: ours(problem), args.repeats)
-    t_ours32, res32 = median_time(lambda: ours(problem32, torch.float32), args.repeats)
     fun, jac = numpy_problem(problem, 0)
     x0_np = x0[0].numpy()
-    rows = [
-        ("facenormals LM, float64 J", t_ours, float(res.cost[0]), int(res.iterations[0])),
-        ("facenormals LM, float32 J (jacobian_dtype)", t_ours32, float(res32.cost[0]), int(res32.iterations[0])),
-    ]
-    for method in ("trf", "lm"):
-        t_sp, sp = median_time(lambda m=method: least_squares(fun, x0_np, jac=jac, method=m), max(1, args.repeats // 2))
-        rows.append((f"scipy least_squares method={method!r}", t_sp, float(sp.cost), int(sp.nfev)))
+    results = interleaved({
+        "facenormals LM, float64 J": lambda: ours(problem),
+        "facenormals LM, float32 J (jacobian_dtype)": lambda: ours(problem32, torch.float32),
+        "scipy least_squares method='trf'": lambda: least_squares(fun, x0_np, jac=jac, method="trf"),
+        "scipy least_squares method='lm'": lambda: least_squares(fun, x0_np, jac=jac, method="lm"),
+    }, args.repeats)
+    rows = [(name, t, float(out.cost[0]) if torch.is_tensor(out.cost) else float(out.cost),
+             int(out.iterations[0]) if hasattr(out, "iterations") else int(out.nfev)) for name, (t, out) in results.items()]
+    t_trf = rows[2][1]
     print()
-    print("| solver | median time (ms) | final cost | iterations / nfev | time / ours (float32 J) |")
+    print(f"{args.repeats} interleaved runs after a warm-up, medians:")
+    print("| solver | median time (ms) | final cost | iterations / nfev | SciPy `trf` / this |")
     print("|---|---|---|---|---|")
     for name, t, cost, it in rows:
-        print(f"| {name} | {t * 1e3:.1f} | {cost:.6f} | {it} | {t / t_ours32:.1f}x |")
+        print(f"| {name} | {t * 1e3:.1f} | {cost:.6f} | {it} | {t_trf / t:.1f}x |")
     for name, t, cost, _ in rows[:2]:
         for sname, st, scost, _ in rows[2:]:
             print(f"{name} vs {sname}: speed-up {st / t:.1f}x, relative cost difference {abs(cost - scost) / scost:.1e}")
 
     batch = HeadProblem(model, batch=args.batch, seed=1, jacobian_dtype=torch.float32)  # as the float32 row above
-    t_batch, res_b = median_time(lambda: ours(batch, torch.float32), 3)
+    elements = [batch.element(b) for b in range(args.batch)]
+    timing = interleaved({
+        "batch": lambda: ours(batch, torch.float32),
+        "one at a time": lambda: [ours(one, torch.float32) for one in elements],
+    }, max(1, args.repeats // 2))
+    t_batch, res_b = timing["batch"]
+    t_seq, _ = timing["one at a time"]
     iterations = res_b.iterations.float()
     print(f"batched (float32 J, damping 1e-5): B={args.batch} in {t_batch * 1e3:.0f} ms = "
           f"{t_batch / args.batch * 1e3:.1f} ms per problem ({res_b.converged.sum().item()}/{args.batch} converged; "
-          f"iterations per element {int(iterations.min())}-{int(iterations.max())}, mean {float(iterations.mean()):.1f})")
+          f"iterations per element {int(iterations.min())}-{int(iterations.max())}, mean {float(iterations.mean()):.1f}); "
+          f"the same problems one at a time: {t_seq / args.batch * 1e3:.1f} ms per problem; "
+          f"throughput batch / one at a time {t_seq / t_batch:.2f}x")
 
 
 if __name__ == "__main__":
-    main()
+    main(ARGS)

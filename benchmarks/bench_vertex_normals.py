@@ -49,6 +49,8 @@ def main() -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 32])
     args = parser.parse_args()
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error(f"--device {args.device}: this torch build ({torch.__version__}) has no CUDA device")
 
     ict = find_ict_archive()
     if ict is None:

@@ -28,7 +28,7 @@ import torch
 from accuracy_network import images, score
 from facenormals.data import SynthConfig, SyntheticHeadGenerator
 from facenormals.fitting import fit_head
-from facenormals.models import load_model
+from facenormals.models import find_ict_archive, load_model
 from facenormals.nn import load_weights, pretrained_weights_path, update_weight_metadata
 from facenormals.reconstruct import fit_inputs, network_fit_weights, predict_maps
 
@@ -45,6 +45,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if find_ict_archive() is None:  # the weights are tuned for (and stored with) the ICT-FaceKit fit
+        raise SystemExit("tune_network_fit.py needs ICT-FaceKit: `facenormals models fetch ict` (or set FACENORMALS_ICT)")
     model = load_model("ict", dtype=torch.float32)
     net = load_weights(args.weights)
     generator = SyntheticHeadGenerator(model, SynthConfig(expression_probability=0.0))

@@ -76,6 +76,11 @@ def main() -> None:
     parser.add_argument("--calibration", default=None, help="training set to re-choose the gated thresholds on")
     parser.add_argument("--calibration-range", type=int, nargs=2, default=(59000, 60000))
     args = parser.parse_args()
+    if args.calibration:  # checked before the held-out set is predicted
+        lo, hi = args.calibration_range
+        size = len(SyntheticHeadDataset(args.calibration, with_landmark_maps=False))
+        if not 0 <= lo < hi <= size:
+            parser.error(f"--calibration-range {lo} {hi}: expected 0 <= LO < HI <= {size}, the size of {args.calibration}")
     net = load_weights(args.weights).eval()
     model = load_model(args.model, dtype=torch.float64)
     if landmark_channels(model) != list(range(len(model.landmark_names))):
