@@ -19,18 +19,17 @@ import platform
 import statistics
 import time
 
+from _threads import add_threads_argument, pin_threads
+
 
 def arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=5, help="interleaved runs of each solver")
     parser.add_argument("--batch", type=int, default=16, help="batch size of the batched-throughput run")
     parser.add_argument("--model", default="ict")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch and BLAS threads (default: the libraries' choice)")
+    add_threads_argument(parser)
     args = parser.parse_args()
-    if args.threads:  # before numpy, scipy and torch create their thread pools
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ[var] = str(args.threads)
+    pin_threads(args)  # before numpy, scipy and torch create their thread pools
     return args
 
 
