@@ -253,10 +253,11 @@ def intersect_lines_along_z(
     # Classes of triangle size (extent <= 2 base, <= 4 base, <= 8 base, ...), each on a grid of a quarter
     # of its largest extent: a triangle enters at most 25 cells, however much larger than the median.
     level = np.ceil(np.log2(np.maximum(extent / base, 2.0))).astype(np.int64)
-    pairs = [_pairs_in_cells(points[:, :2], lo[members], hi[members], base * 2.0 ** (lv - 2), members)
-             for lv in np.unique(level) for members in (np.flatnonzero(level == lv),)]
-    q = np.concatenate([pair[0] for pair in pairs]) if pairs else np.zeros(0, dtype=np.int64)
-    f = np.concatenate([pair[1] for pair in pairs]) if pairs else np.zeros(0, dtype=np.int64)
+    pairs = []
+    for lv in np.unique(level):  # at least one: _check_query refuses an empty face list
+        members = np.flatnonzero(level == lv)
+        pairs.append(_pairs_in_cells(points[:, :2], lo[members], hi[members], base * 2.0 ** (lv - 2), members))
+    q, f = (np.concatenate(column) for column in zip(*pairs))
     a, b, c = tri[f, 0], tri[f, 1], tri[f, 2]
     p = points[q]
     e1, e2, d = (b - a)[:, :2], (c - a)[:, :2], (p - a)[:, :2]

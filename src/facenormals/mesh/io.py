@@ -119,7 +119,7 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     if not path.is_file():
         raise ValueError(f"{path}: mesh file not found")
     suffix = path.suffix.lower()
-    read_directly = {".ply": _read_triangle_ply, ".obj": _read_triangle_obj}.get(suffix)
+    read_directly = {".ply": _read_triangle_ply, ".obj": _read_obj}.get(suffix)
     arrays = read_directly(path) if read_directly is not None else None
     if arrays is None:
         points, triangles = _read_with_trimesh(path)
@@ -214,13 +214,13 @@ def _read_triangle_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 _OBJ_SKIPPED = {b"vt", b"vn", b"vp", b"o", b"g", b"s", b"usemtl", b"mtllib"}
 
 
-def _read_triangle_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """An OBJ of faces (``f a b c ...``, ``a/t/n``, ``a//n``, negative indices counting back from the
     last vertex), polygons split into the triangles trimesh makes of them (a quad ``a b c d`` into
     ``a b c`` and ``c d a``, larger ones into a fan around the first corner), listed polygon by
-    polygon (trimesh lists the first triangles of all quads, then the second); ``None`` for anything else (lines,
-    line continuations, numbers that are not plain decimals), which trimesh then reads. Unlike
-    trimesh, the vertices stay those of the ``v`` lines when several materials share them."""
+    polygon (trimesh lists the first triangles of all quads, then the second); ``None`` for anything
+    else (lines, line continuations, numbers that are not plain decimals), which trimesh then reads.
+    Unlike trimesh, the vertices stay those of the ``v`` lines when several materials share them."""
     with open(path, "rb") as file:
         data = file.read()
     vertex_rows, face_rows = [], []

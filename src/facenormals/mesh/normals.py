@@ -25,9 +25,9 @@ Faces are wound counter-clockwise seen from outside, so the face normal
 
 Every normalisation is :math:`x / \max(\lVert x \rVert, \varepsilon)` (as in
 :func:`torch.nn.functional.normalize`): degenerate faces contribute (nearly) nothing in both
-modes, vertices used by no face get a zero normal, and for finite vertices (NaN or infinite ones are
-refused) neither values nor gradients are ever NaN. (The gradient through an exactly degenerate face is finite but of order
-:math:`1/\varepsilon`.)
+modes, vertices used by no face get a zero normal, and for finite vertices (NaN or infinite ones
+are refused) neither values nor gradients are ever NaN. (The gradient through an exactly
+degenerate face is finite but of order :math:`1/\varepsilon`.)
 
 Implementation (no Python loop over vertices or faces): the vertices are laid out as an
 ``(N, 3B)`` matrix whose rows hold the components planar, ``(3, B)``; the face corners are gathered

@@ -84,11 +84,12 @@ def _flat_index(u: Tensor, v: Tensor, height: int, width: int) -> Tensor:
     return v.clamp(0, height - 1).long() * width + u.clamp(0, width - 1).long()
 
 
-def _surface_depth(pixels: Tensor, zbuffer: Tensor) -> Tensor:
+def _surface_depth(pixels: Tensor, nearest_u: Tensor, nearest_v: Tensor, zbuffer: Tensor) -> Tensor:
     """The z-buffer's depth ``(B, N)`` at sub-pixel positions: ``1/z`` interpolated bilinearly between
     the four pixel centres around each point (exact on a plane, whose ``1/z`` is affine in the
-    pixels), or the nearest pixel's depth where one of the four is background or outside the image.
-    Points that project nowhere (NaN) read the pixel ``(-1, -1)``, clamped (they are outside anyway)."""
+    pixels), or the depth at the nearest pixel ``(nearest_u, nearest_v)`` (:func:`_nearest_pixel`)
+    where one of the four is background or outside the image. Points that project nowhere (NaN)
+    read the pixel ``(-1, -1)``, clamped (they are outside anyway)."""
     batch, height, width = zbuffer.shape
     work = torch.promote_types(zbuffer.dtype, torch.float32)
     flat = zbuffer.to(work).reshape(batch, height * width)
@@ -101,8 +102,7 @@ def _surface_depth(pixels: Tensor, zbuffer: Tensor) -> Tensor:
         corner = torch.gather(flat, 1, _flat_index(u0 + du, v0 + dv, height, width))
         interior &= torch.isfinite(corner)
         inverse = inverse + weight / corner
-    u, v = _nearest_pixel(uv)
-    nearest = torch.gather(flat, 1, _flat_index(u, v, height, width))
+    nearest = torch.gather(flat, 1, _flat_index(nearest_u, nearest_v, height, width))
     return torch.where(interior, 1.0 / inverse, nearest)
 
 
@@ -148,7 +148,7 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
         raise ValueError(f"zbuffer: expected H, W >= 1, got shape {tuple(zbuffer.shape)}")
     u, v = _nearest_pixel(pixels)
     inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)
-    return inside & (depth <= _surface_depth(pixels, zbuffer) + tolerance)
+    return inside & (depth <= _surface_depth(pixels, u, v, zbuffer) + tolerance)
 
 
 @torch.no_grad()
