@@ -20,7 +20,7 @@ from urllib.parse import urlparse
 import numpy as np
 
 from facenormals.core.files import atomic_write
-from facenormals.models.ict import ict_npz_from_raw
+from facenormals.models.ict import ICT_FULL_EXPRESSIONS, ICT_FULL_IDENTITIES, ict_npz_from_raw
 from facenormals.models.morphable import ModelFileError
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
 
@@ -40,7 +40,7 @@ ICT_RELEASE_SHA256 = {
     "identity_basis": "dc0de2b6bd03b82d3a61d82d4cfac04a2acf12c21c1578857d32129005d15bf4",
     "expression_basis": "89629e8b199f81d21866925c5a4ab2c3c4c6b309fc1ea681f9b6cee0a9660334",
 }
-_COMPLETE_MODES = {"identity_basis": 100, "expression_basis": 53}
+_COMPLETE_MODES = {"identity_basis": ICT_FULL_IDENTITIES, "expression_basis": ICT_FULL_EXPRESSIONS}
 FROM_HINT = "facenormals models fetch ict --from DIR"
 _CHUNK = 1 << 20
 
@@ -125,7 +125,8 @@ def _report(archive: Path, progress: Callable[[str], object] | None) -> None:
         return
     with np.load(archive, allow_pickle=False) as data:
         identities, expressions = data["identity_basis"].shape[0], data["expression_basis"].shape[0]
-    note = "" if (identities, expressions) == (100, 53) else " (partial copy: the full model has 100 and 53)"
+    partial = (identities, expressions) != (ICT_FULL_IDENTITIES, ICT_FULL_EXPRESSIONS)
+    note = f" (partial copy: the full model has {ICT_FULL_IDENTITIES} and {ICT_FULL_EXPRESSIONS})" if partial else ""
     release = "a different release" if differences else "the release facenormals was built with"
     progress(f"wrote {archive}: {identities} identity modes, {expressions} expressions{note}; {release}")
 

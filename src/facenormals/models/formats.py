@@ -36,7 +36,7 @@ import torch
 
 from facenormals.core.check import INWARD_SHARE, outward_share
 from facenormals.models.ict import opengl_to_model_frame
-from facenormals.models.morphable import ModelFileError, MorphableModel
+from facenormals.models.morphable import ModelFileError, MorphableModel, check_model_dtype
 
 __all__ = ["load_bfm2009", "load_bfm2017", "load_flame", "load_lyhm"]
 
@@ -94,8 +94,7 @@ def _check_exists(path: Path, what: str) -> None:
 
 def _work_dtype(dtype: torch.dtype) -> np.dtype:
     """NumPy dtype for the conversions: float64 when the model is float64, float32 otherwise."""
-    if not dtype.is_floating_point:
-        raise ValueError(f"dtype: expected a floating-point dtype, got {dtype}")
+    check_model_dtype(dtype)
     return np.dtype(np.float64 if dtype == torch.float64 else np.float32)
 
 

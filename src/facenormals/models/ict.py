@@ -41,6 +41,9 @@ ICT_HEAD_VERTEX_COUNT = 11248
 ICT_HEAD_POLYGON_COUNT = 11144
 #: The face area (region #0) is the first 9409 vertices.
 ICT_FACE_VERTEX_COUNT = 9409
+#: Identity and expression components of the full release (fewer in a copy converted from a subset).
+ICT_FULL_IDENTITIES = 100
+ICT_FULL_EXPRESSIONS = 53
 ICT_NEUTRAL = "generic_neutral_mesh.obj"
 ICT_CONFIG = "vertex_indices.json"
 ICT_FOLDER = "FaceXModel"

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from facenormals.models.builtin import builtin_head_model
-from facenormals.models.ict import load_ict_npz, load_ict_raw
+from facenormals.models.ict import ICT_FULL_EXPRESSIONS, ICT_FULL_IDENTITIES, load_ict_npz, load_ict_raw
 from facenormals.models.morphable import ModelFileError, MorphableModel
 
 __all__ = ["cache_dir", "find_ict_archive", "load_model"]
@@ -114,9 +114,10 @@ def load_model(spec: str | Path = "auto", dtype: torch.dtype = torch.float32) ->
         archive = find_ict_archive()
         if archive is not None:
             model = load_ict_npz(archive, dtype=dtype)
-            if model.num_shape < 100 or model.num_expressions < 53:  # e.g. converted from a subset
+            if model.num_shape < ICT_FULL_IDENTITIES or model.num_expressions < ICT_FULL_EXPRESSIONS:  # a subset's
                 warnings.warn(f"{archive}: a partial ICT-FaceKit ({model.num_shape} identity components and "
-                              f"{model.num_expressions} expressions of 100 and 53); replace it with "
+                              f"{model.num_expressions} expressions of {ICT_FULL_IDENTITIES} and "
+                              f"{ICT_FULL_EXPRESSIONS}); replace it with "
                               "`facenormals models fetch ict --force`", stacklevel=2)
             return model
         if spec == "ict":
