@@ -13,6 +13,11 @@ from facenormals.nn.unet import UNetOutput
 __all__ = ["normal_landmark_loss"]
 
 
+def _foreground_pixel_mask(foreground: Tensor) -> Tensor:
+    r"""The pixels :math:`\Omega` that :math:`L_N` averages over: a bool mask as it is, a soft one above 0.5."""
+    return foreground if foreground.dtype == torch.bool else foreground.detach() > 0.5
+
+
 def normal_landmark_loss(
     output: UNetOutput,
     normals_gt: Tensor,
@@ -104,11 +109,9 @@ def normal_landmark_loss(
         mask = (normals_gt * normals_gt).sum(dim=1, keepdim=True) > 0.25
     else:
         check_shape(foreground_gt, ["B", 1, "H", "W"], "foreground_gt", dims)
-        if foreground_gt.dtype == torch.bool:
-            mask = foreground_gt
-        else:
+        if foreground_gt.dtype != torch.bool:
             check_floating(foreground_gt, "foreground_gt")
-            mask = foreground_gt.detach() > 0.5
+        mask = _foreground_pixel_mask(foreground_gt)
     mask_f = mask.to(normals.dtype)
 
     sq_err = ((normals - normals_gt) ** 2).sum(dim=1, keepdim=True)

@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from facenormals.core.files import PART, atomic_write
 from facenormals.data.augment import PhotoAugmentation
 from facenormals.data.landmark_maps import landmark_maps
-from facenormals.nn.loss import normal_landmark_loss
+from facenormals.nn.loss import _foreground_pixel_mask, normal_landmark_loss
 from facenormals.nn.unet import NormalLandmarkUNet, UNetOutput
 from facenormals.training.checkpoint import load_checkpoint, save_checkpoint
 from facenormals.training.config import TrainConfig
@@ -149,8 +149,7 @@ def _check_holdout_is_not_training_data(dataset: Dataset, holdout: str) -> None:
 def _foreground_per_rank(foreground: Tensor, world_size: int) -> Tensor:
     """The global batch's foreground pixels (counted as the loss counts them) divided by the number
     of processes: each rank's L_N divided by it averages, over the ranks, to the global batch's L_N."""
-    mask = foreground if foreground.dtype == torch.bool else foreground > 0.5
-    count = mask.sum(dtype=torch.float32)
+    count = _foreground_pixel_mask(foreground).sum(dtype=torch.float32)
     torch.distributed.all_reduce(count)
     return count / world_size
 
