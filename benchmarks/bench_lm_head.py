@@ -38,7 +38,7 @@ ARGS = arguments() if __name__ == "__main__" else None
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 import torch  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
+from scipy.optimize import OptimizeResult, least_squares  # noqa: E402
 
 from facenormals.geometry import (  # noqa: E402
     euler_rotation_derivatives,
@@ -168,6 +168,13 @@ def interleaved(runs: dict, repeats: int) -> dict:
     return {name: (statistics.median(times[name]), outputs[name]) for name in runs}
 
 
+def _cost_and_count(result) -> tuple[float, int]:
+    """Final cost and iterations of our LMResult (batch of one), or cost and nfev of SciPy's result."""
+    if isinstance(result, OptimizeResult):
+        return float(result.cost), int(result.nfev)
+    return float(result.cost[0]), int(result.iterations[0])
+
+
 def main(args: argparse.Namespace) -> None:
     torch.manual_seed(0)
     model = load_model(args.model, dtype=torch.float64)
@@ -198,8 +205,7 @@ def main(args: argparse.Namespace) -> None:
         "scipy least_squares method='trf'": lambda: least_squares(fun, x0_np, jac=jac, method="trf"),
         "scipy least_squares method='lm'": lambda: least_squares(fun, x0_np, jac=jac, method="lm"),
     }, args.repeats)
-    rows = [(name, t, float(out.cost[0]) if torch.is_tensor(out.cost) else float(out.cost),
-             int(out.iterations[0]) if hasattr(out, "iterations") else int(out.nfev)) for name, (t, out) in results.items()]
+    rows = [(name, t, *_cost_and_count(out)) for name, (t, out) in results.items()]
     t_trf = rows[2][1]
     print()
     print(f"{args.repeats} interleaved runs after a warm-up, medians:")
