@@ -151,19 +151,24 @@ class Rings:
         s = slot_sum @ m
         s_norm = s.norm(dim=1, keepdim=True).clamp_min(1e-12)
         n = s / s_norm
-        F = p.shape[0]
-        eye = torch.eye(3, dtype=p.dtype, device=p.device)
-        face_projector = (eye - torch.bmm(m[:, :, None], m[:, None, :])) / c_norm[:, :, None]  # (F, 3, 3)
-        d = p.roll(1, 1) - p.roll(-1, 1)  # (F, corner, 3): p_{k+2} - p_{k+1}, the edge opposite corner k
+        # The corner coefficient is P [d]× / |c| with P = I - m mᵀ and d = p_{k+2} - p_{k+1}, the edge
+        # opposite corner k. Its transpose [d]× P / |c| = ([d]× - (d × m) mᵀ) / |c| (P, [d]×ᵀ = -[d]×),
+        # written out per entry: 3×3 products as bmm cost ~4× more here. Rows (face, corner) stay
+        # contiguous for the summing product.
+        d = p.roll(1, 1) - p.roll(-1, 1)  # (F, corner, 3)
+        m_corner = m[:, None].expand_as(d)
+        coef_t = -torch.linalg.cross(d, m_corner)[..., :, None] * m[:, None, None, :]  # (F, corner, 3, 3)
         x, y, z = d.unbind(-1)
-        zero = torch.zeros_like(x)
-        skew = torch.stack([torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1),
-                            torch.stack([-y, x, zero], -1)], dim=2)  # (F, corner, 3, 3) = [d]×
-        # the corner coefficient is P [d]× / |c| = -([d]× P / |c|)ᵀ (P and [d]×ᵀ = -[d]×): the right-hand
-        # form keeps the rows (face, corner) contiguous for the summing product
-        coef_t = torch.bmm(skew.view(F, 9, 3), face_projector).view(3 * F, 9)
+        coef_t[..., 0, 1] -= z
+        coef_t[..., 0, 2] += y
+        coef_t[..., 1, 0] += z
+        coef_t[..., 1, 2] -= x
+        coef_t[..., 2, 0] -= y
+        coef_t[..., 2, 1] += x
+        coef_t = coef_t.div_(c_norm[:, :, None, None]).view(-1, 9)
         raw = -(block_sum @ coef_t).view(-1, 3, 3).transpose(1, 2)
-        projector = (eye - torch.bmm(n[:, :, None], n[:, None, :])) / s_norm[:, :, None]
+        eye = torch.eye(3, dtype=p.dtype, device=p.device)
+        projector = (eye - n[:, :, None] * n[:, None, :]) / s_norm[:, :, None]
         return n, projector, raw
 
     def normals_and_blocks(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
