@@ -53,10 +53,13 @@ def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
     check_shape(angles, ["B", 3], "angles")
     check_floating(angles, "angles")
     check_finite(angles, "angles")
-    roll, pitch, yaw = angles.unbind(-1)
-    cr, sr = torch.cos(roll), torch.sin(roll)
-    cp, sp = torch.cos(pitch), torch.sin(pitch)
-    cy, sy = torch.cos(yaw), torch.sin(yaw)
+    return _rotation(angles)
+
+
+def _rotation(angles: Tensor) -> Tensor:
+    """:func:`euler_to_rotation_matrix` without the input checks."""
+    cr, cp, cy = torch.cos(angles).unbind(-1)
+    sr, sp, sy = torch.sin(angles).unbind(-1)
     # Product R_y(yaw) @ R_x(pitch) @ R_z(roll), written out.
     r00 = cy * cr + sy * sp * sr
     r01 = -cy * sr + sy * sp * cr
@@ -68,22 +71,6 @@ def euler_to_rotation_matrix(angles: Tensor) -> Tensor:
     r21 = sy * sr + cy * sp * cr
     r22 = cy * cp
     return torch.stack([r00, r01, r02, r10, r11, r12, r20, r21, r22], dim=-1).reshape(-1, 3, 3)
-
-
-def _elementary(angle: Tensor, axis: int, derivative: bool) -> Tensor:
-    """R_axis(angle) or its derivative d/dangle, ``(B, 3, 3)``."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    zero, one = torch.zeros_like(c), torch.ones_like(c)
-    if derivative:
-        c, s, one = -s, c, zero
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]  # the plane the rotation acts in
-    out = torch.zeros(angle.shape[0], 3, 3, dtype=angle.dtype, device=angle.device)
-    out[:, axis, axis] = one
-    out[:, i, i] = c
-    out[:, j, j] = c
-    out[:, i, j] = -s
-    out[:, j, i] = s
-    return out
 
 
 def euler_rotation_derivatives(angles: Tensor) -> Tensor:
@@ -108,10 +95,16 @@ def euler_rotation_derivatives(angles: Tensor) -> Tensor:
     check_shape(angles, ["B", 3], "angles")
     check_floating(angles, "angles")
     check_finite(angles, "angles")
-    roll, pitch, yaw = angles.unbind(-1)
-    rz, rx, ry = _elementary(roll, 2, False), _elementary(pitch, 0, False), _elementary(yaw, 1, False)
-    drz, drx, dry = _elementary(roll, 2, True), _elementary(pitch, 0, True), _elementary(yaw, 1, True)
-    return torch.stack([ry @ rx @ drz, ry @ drx @ rz, dry @ rx @ rz], dim=1)
+    # With the generators G_a = [e_a]× (R_a' = G_a R_a = R_a G_a): dR/droll = R G_z, dR/dyaw = G_y R and
+    # dR/dpitch = R_y G_x R_x R_z = [R_y e_x]× R, each a few column or row moves of R.
+    R = _rotation(angles)
+    yaw = angles[:, 2]
+    zero = torch.zeros_like(R[:, 0])
+    d_roll = torch.stack([R[:, :, 1], -R[:, :, 0], zero], dim=-1)
+    axis = torch.stack([torch.cos(yaw), torch.zeros_like(yaw), -torch.sin(yaw)], dim=-1)  # R_y e_x
+    d_pitch = torch.linalg.cross(axis[:, :, None].expand_as(R), R, dim=1)
+    d_yaw = torch.stack([R[:, 2], zero, -R[:, 0]], dim=1)
+    return torch.stack([d_roll, d_pitch, d_yaw], dim=1)
 
 
 def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
