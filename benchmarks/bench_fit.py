@@ -28,6 +28,7 @@ import statistics
 import time
 
 from _threads import add_threads_argument, pin_threads
+from _timing import interleaved
 
 
 def arguments() -> argparse.Namespace:
@@ -60,17 +61,6 @@ def timed(fn):
     start = time.perf_counter()
     out = fn()
     return time.perf_counter() - start, out
-
-
-def interleaved(runs: dict, repeats: int) -> dict:
-    """``{name: (median seconds, last output)}`` of the callables in ``runs``, run in turn ``repeats`` times."""
-    times = {name: [] for name in runs}
-    outputs = {}
-    for _ in range(repeats):
-        for name, fn in runs.items():
-            t, outputs[name] = timed(fn)
-            times[name].append(t)
-    return {name: (statistics.median(times[name]), outputs[name]) for name in runs}
 
 
 def main(args: argparse.Namespace) -> None:

@@ -16,10 +16,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
-import time
 
 from _threads import add_threads_argument, pin_threads
+from _timing import interleaved
 
 
 def arguments() -> argparse.Namespace:
@@ -155,19 +154,6 @@ def numpy_problem(problem: HeadProblem, b: int):
     return fun, jac
 
 
-def interleaved(runs: dict, repeats: int) -> dict:
-    """``{name: (median seconds, last output)}`` of the callables in ``runs``: each warmed up once, then
-    all run in turn ``repeats`` times."""
-    outputs = {name: fn() for name, fn in runs.items()}  # warm-up
-    times: dict = {name: [] for name in runs}
-    for _ in range(repeats):
-        for name, fn in runs.items():
-            start = time.perf_counter()
-            outputs[name] = fn()
-            times[name].append(time.perf_counter() - start)
-    return {name: (statistics.median(times[name]), outputs[name]) for name in runs}
-
-
 def _cost_and_count(result) -> tuple[float, int]:
     """Final cost and iterations of our LMResult (batch of one), or cost and nfev of SciPy's result."""
     if isinstance(result, OptimizeResult):
@@ -204,7 +190,7 @@ def main(args: argparse.Namespace) -> None:
         "facenormals LM, float32 J (jacobian_dtype)": lambda: ours(problem32, torch.float32),
         "scipy least_squares method='trf'": lambda: least_squares(fun, x0_np, jac=jac, method="trf"),
         "scipy least_squares method='lm'": lambda: least_squares(fun, x0_np, jac=jac, method="lm"),
-    }, args.repeats)
+    }, args.repeats, warm_up=True)
     rows = [(name, t, *_cost_and_count(out)) for name, (t, out) in results.items()]
     t_trf = rows[2][1]
     print()
@@ -222,7 +208,7 @@ def main(args: argparse.Namespace) -> None:
     timing = interleaved({
         "batch": lambda: ours(batch, torch.float32),
         "one at a time": lambda: [ours(one, torch.float32) for one in elements],
-    }, max(1, args.repeats // 2))
+    }, max(1, args.repeats // 2), warm_up=True)
     t_batch, res_b = timing["batch"]
     t_seq, _ = timing["one at a time"]
     iterations = res_b.iterations.float()

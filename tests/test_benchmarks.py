@@ -17,7 +17,7 @@ import pytest
 from tests.conftest import headless_gl_or_skip, ict_archive_or_skip
 
 BENCHMARKS = sorted(p for p in (Path(__file__).resolve().parents[1] / "benchmarks").glob("*.py")
-                    if not p.name.startswith("_"))  # _threads.py: a helper module
+                    if not p.name.startswith("_"))  # _threads.py, _timing.py: helper modules
 
 
 def test_there_are_benchmarks():
