@@ -20,7 +20,7 @@ PUBLIC = {
                            "render_normal_map", "render_shaded", "shade_normal_map", "splat_zbuffer", "unoccluded_points",
                            "visible_vertices"],
     "facenormals.energy": ["landmark_residuals", "normal_residuals", "prior_residuals"],
-    "facenormals.optim": ["LMResult", "LMStatus", "levenberg_marquardt"],
+    "facenormals.optim": ["LMResult", "LMStatus", "levenberg_marquardt", "normal_equations"],
     "facenormals.nn": ["NormalLandmarkUNet", "UNetOutput", "load_weights", "mirror_averaged", "mirror_output",
                        "mirror_permutation", "normal_landmark_loss", "pretrained_weights_path",
                        "update_weight_metadata"],

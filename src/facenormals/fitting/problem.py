@@ -50,6 +50,7 @@ from facenormals.geometry import (
 )
 from facenormals.mesh import vertex_normals
 from facenormals.models import MorphableModel
+from facenormals.optim.normal_equations import gram
 from facenormals.render import rasterize_depth, splat_zbuffer, visible_vertices
 from facenormals.sampling import sample_bicubic_with_gradient
 
@@ -517,7 +518,7 @@ class HeadFitProblem:
         r_views, r_small = r[:, : V * rows].view(count, V, 1, rows), r[:, V * rows :].unsqueeze(1)
         flat = shared.view(count, V * rows, C)
         H = small.transpose(1, 2) @ small
-        H[:, :C, :C] += flat.transpose(1, 2) @ flat
+        H[:, :C, :C] += gram(flat)
         g = (r_small @ small).squeeze(1)
         g[:, :C] += (r[:, None, : V * rows] @ flat).squeeze(1)
         for v in range(V):

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_integer, check_nonnegative, check_shape
+from facenormals.optim.normal_equations import normal_equations as normal_equations_of
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
 
@@ -410,10 +411,7 @@ def _solve(
             jac = torch.func.jacrev(lambda z: fn(z).sum(0), chunk_size=chunk_size)(x_)
             jac = jac.permute(1, 0, 2)
         jac = jac.to(jacobian_dtype)
-        hessian = torch.matmul(jac.transpose(1, 2), jac)
-        # rᵀJ rather than Jᵀr: a batched row-vector product reads J in its own layout (a transposed
-        # matrix-vector product is several times slower on CPU).
-        gradient = torch.matmul(r_.to(jacobian_dtype).unsqueeze(1), jac).squeeze(1)
+        hessian, gradient = normal_equations_of(jac, r_.to(jacobian_dtype))
         return hessian.to(dtype), gradient.to(dtype)
 
     def half_sq(r_: Tensor) -> Tensor:
