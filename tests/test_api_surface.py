@@ -15,7 +15,7 @@ PUBLIC = {
     "facenormals.models": ["BUILTIN_PARAMETERS", "LANDMARK_NAMES", "LANDMARK_PAIRS", "ModelFileError",
                            "MorphableModel", "builtin_head_model", "fetch_ict", "find_ict_archive", "ict_release_differences", "load_bfm2009",
                            "load_bfm2017", "load_flame", "load_ict_npz", "load_ict_raw", "load_lyhm", "load_model"],
-    "facenormals.sampling": ["sample_bicubic", "sample_bicubic_with_gradient"],
+    "facenormals.sampling": ["BicubicSampler", "sample_bicubic", "sample_bicubic_with_gradient"],
     "facenormals.render": ["Fragments", "draw_alignment", "interpolate_vertex_attributes", "normal_map_to_image", "rasterize_depth", "rasterize_triangles",
                            "render_normal_map", "render_shaded", "shade_normal_map", "splat_zbuffer", "unoccluded_points",
                            "visible_vertices"],

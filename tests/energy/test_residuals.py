@@ -80,6 +80,20 @@ def test_normal_residuals_against_naive(dtype, device):
     assert_close(0.5 * (r**2).sum(), weight * energy)
 
 
+def test_normal_residuals_foreground_support_on_a_speckled_map():
+    """Every corner of the bilinear support counts, at the last row and column too (clamped)."""
+    g = torch.Generator().manual_seed(5)
+    H, W = 7, 9
+    normal_map = torch.zeros(2, 3, H, W, dtype=torch.float64)
+    normal_map[:, 2] = torch.where(torch.rand(2, H, W, generator=g) < 0.75, -1.0, 0.0)
+    pixels = torch.stack([torch.rand(2, 400, generator=g, dtype=torch.float64) * (W - 1),
+                          torch.rand(2, 400, generator=g, dtype=torch.float64) * (H - 1)], -1)
+    pixels[:, :H * W] = torch.stack(torch.meshgrid(torch.arange(W), torch.arange(H), indexing="xy"), -1).reshape(-1, 2)
+    _, valid = normal_residuals(normal_map, pixels, torch.zeros(2, 400, 3, dtype=torch.float64))
+    ref = naive_valid(normal_map, pixels, None)
+    assert torch.equal(valid, ref) and 0 < int(ref.sum()) < ref.numel()
+
+
 def test_normal_residuals_hand_computed():
     normal_map = torch.zeros(1, 3, 5, 5, dtype=torch.float64)
     normal_map[:, 2, :, :4] = -1.0  # foreground everywhere except the last column

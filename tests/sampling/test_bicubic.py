@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import torch
 
-from facenormals.sampling import sample_bicubic, sample_bicubic_with_gradient
+from facenormals.sampling import BicubicSampler, sample_bicubic, sample_bicubic_with_gradient
 from tests.conftest import assert_close
 
 A = -0.75
@@ -321,3 +321,117 @@ def test_a_non_finite_image_is_named_and_nan_positions_still_sample_nothing():
     for sample in (sample_bicubic, sample_bicubic_with_gradient):
         with pytest.raises(ValueError, match="image: expected finite values, got 1 NaN or infinite entries"):
             sample(image, pixels)
+
+
+# --- BicubicSampler: the same interpolant from a precomputed table of 4x4 neighbourhoods ---
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("size", [(13, 17), (1, 1), (1, 6), (5, 2)])
+def test_sampler_equals_the_functions(dtype, size):
+    H, W = size
+    image = random_image(2, 3, H, W, dtype)
+    pixels = random_pixels(2, 300, H, W, margin=4.0, dtype=dtype)
+    pixels[0, :4] = torch.tensor([[1e9, 0.0], [-1e9, 2.0], [0.0, float("nan")], [float("inf"), 1.0]], dtype=dtype)
+    pixels[1, :3] = torch.tensor([[0.0, 0.0], [W - 1.0, H - 1.0], [W - 1.0, 0.0]], dtype=dtype)  # corners
+    sampler = BicubicSampler(image)
+    tol = dict(atol=1e-6, rtol=0) if dtype == torch.float32 else dict(atol=1e-13, rtol=0)
+    values, inside = sampler(pixels)
+    ref, ref_inside = sample_bicubic(image, pixels)
+    assert_close(values, ref, **tol)
+    assert torch.equal(inside, ref_inside)
+    values, grad, inside = sampler.with_gradient(pixels)
+    ref, ref_grad, ref_inside = sample_bicubic_with_gradient(image, pixels)
+    assert_close(values, ref, **tol)
+    assert_close(grad, ref_grad, **tol)
+    assert torch.equal(inside, ref_inside)
+    assert values.dtype == grad.dtype == dtype
+
+
+def test_sampler_against_cv2_and_naive_loop():
+    H, W = 9, 11
+    image = random_image(1, 4, H, W)
+    pixels = on_cv2_grid(random_pixels(1, 200, H, W, margin=3.0))
+    values, _ = BicubicSampler(image)(pixels)
+    assert np.abs(values[0].numpy() - cv2_sample(image[0], pixels[0])).max() < 1e-5
+    image64 = image.double()
+    values, _ = BicubicSampler(image64)(pixels.double())
+    for n in range(0, 200, 17):
+        u, v = pixels[0, n].tolist()
+        np.testing.assert_allclose(values[0, n].numpy(), naive_sample(image64[0].numpy(), u, v), atol=1e-12)
+
+
+def test_sampler_image_index_picks_the_image_per_row():
+    image = random_image(3, 2, 6, 7)
+    sampler = BicubicSampler(image)
+    pixels = random_pixels(4, 20, 6, 7, margin=1.0)
+    index = torch.tensor([2, 0, 2, 1])
+    values, grad, inside = sampler.with_gradient(pixels, index)
+    for k, b in enumerate(index.tolist()):
+        ref, ref_grad, ref_inside = sample_bicubic_with_gradient(image[b : b + 1], pixels[k : k + 1])
+        assert_close(values[k : k + 1], ref, atol=1e-6, rtol=0)
+        assert_close(grad[k : k + 1], ref_grad, atol=1e-6, rtol=0)
+        assert torch.equal(inside[k : k + 1], ref_inside)
+    assert_close(sampler(pixels[:2], torch.tensor([1, 1]))[0][1], sample_bicubic(image[1:2], pixels[1:2])[0][0])
+
+
+def test_sampler_gradcheck_and_analytic_gradient():
+    image = random_image(1, 2, 5, 6, torch.float64)
+    sampler = BicubicSampler(image)
+    pixels = random_pixels(1, 7, 5, 6, margin=0.5, dtype=torch.float64).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: sampler(p)[0], (pixels,))
+    jac = torch.autograd.functional.jacobian(lambda p: sampler(p)[0], pixels)  # (1, N, C, 1, N, 2)
+    _, grad, _ = sampler.with_gradient(pixels.detach())
+    diagonal = torch.stack([jac[0, n, :, 0, n] for n in range(7)])  # (N, C, 2)
+    assert_close(grad[0], diagonal, atol=1e-12, rtol=0)
+
+
+def test_sampler_under_torch_func():
+    image = random_image(1, 3, 6, 7, torch.float64)
+    sampler = BicubicSampler(image)
+    pixels = random_pixels(1, 5, 6, 7, margin=0.0, dtype=torch.float64)
+    jac = torch.func.jacfwd(lambda p: sampler(p)[0])(pixels)
+    ref = torch.func.jacfwd(lambda p: sample_bicubic(image, p)[0])(pixels)
+    assert_close(jac, ref, atol=1e-12, rtol=0)
+
+
+def test_sampler_follows_to_and_handles_empty_inputs():
+    image = random_image(1, 2, 4, 5)
+    sampler = BicubicSampler(image).to(torch.float64)
+    values, inside = sampler(random_pixels(1, 3, 4, 5, margin=0.0, dtype=torch.float64))
+    assert values.dtype == torch.float64 and values.shape == (1, 3, 2)
+    values, inside = sampler(torch.zeros(1, 0, 2, dtype=torch.float64))
+    assert values.shape == (1, 0, 2) and inside.shape == (1, 0)
+    values, inside = BicubicSampler(torch.zeros(2, 0, 3, 3))(torch.zeros(2, 4, 2))
+    assert values.shape == (2, 4, 0)
+    values, inside = BicubicSampler(torch.zeros(0, 3, 3, 3))(torch.zeros(0, 4, 2))
+    assert values.shape == (0, 4, 3)
+
+
+def test_sampler_bad_inputs_name_the_argument():
+    image = torch.rand(2, 3, 4, 5)
+    sampler = BicubicSampler(image)
+    with pytest.raises(ValueError, match="image: expected shape"):
+        BicubicSampler(torch.rand(3, 4, 5))
+    with pytest.raises(ValueError, match="image: expected a floating"):
+        BicubicSampler(image.to(torch.uint8))
+    with pytest.raises(ValueError, match="H >= 1"):
+        BicubicSampler(torch.rand(2, 3, 0, 5))
+    bad = image.clone()
+    bad[1, 2, 3, 4] = float("nan")
+    with pytest.raises(ValueError, match="image: expected finite values"):
+        BicubicSampler(bad)
+    with pytest.raises(ValueError, match=r"pixels: expected shape \(K, N, 2\)"):
+        sampler(torch.rand(2, 6, 3))
+    with pytest.raises(ValueError, match=r"B=2 \(the number of images\) or an image_index, got \(3, 6, 2\)"):
+        sampler(torch.rand(3, 6, 2))
+    with pytest.raises(ValueError, match="pixels: expected dtype torch.float32"):
+        sampler.with_gradient(torch.rand(2, 6, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="pixels: expected a floating"):
+        sampler(torch.zeros(2, 6, 2, dtype=torch.long))
+    with pytest.raises(ValueError, match=r"image_index: expected shape \(3,\), got \(2,\)"):
+        sampler(torch.rand(3, 6, 2), torch.tensor([0, 1]))
+    with pytest.raises(ValueError, match=r"image_index: expected int64 indices in \[0, 2\), got torch.int64 \[0, 2, 1\]"):
+        sampler(torch.rand(3, 6, 2), torch.tensor([0, 2, 1]))
+    with pytest.raises(ValueError, match="image_index: expected int64"):
+        sampler(torch.rand(3, 6, 2), torch.tensor([0.0, 1.0, 1.0]))

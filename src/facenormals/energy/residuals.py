@@ -37,24 +37,35 @@ def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int], count: str
         raise ValueError(f"{name}: expected device {device}, got {mask.device}")
 
 
+def _support_foreground(normal_map: Tensor) -> Tensor:
+    """``(B, H W)``: whether the bilinear support of a point whose floor is pixel ``(v0, u0)`` (entry
+    ``v0 W + u0``), i.e. pixels ``v0 .. v0 + 1`` x ``u0 .. u0 + 1`` clamped to the image, is all
+    foreground. A pixel is foreground when its map normal has norm > 0.5."""
+    B, _, H, W = normal_map.shape
+    fg = normal_map.detach().square().sum(dim=1) > 0.25  # (B, H, W), |n| > 0.5
+    fg = fg & torch.cat([fg[:, :, 1:], fg[:, :, -1:]], dim=2)  # and the next column (clamped)
+    fg = fg & torch.cat([fg[:, 1:], fg[:, -1:]], dim=1)  # and the next row
+    return fg.reshape(B, H * W)
+
+
 def _foreground(normal_map: Tensor, pixels: Tensor) -> Tensor:
     """True where all 4 nearest pixels (the bilinear support) of ``pixels`` are foreground.
 
-    A pixel is foreground when its map normal has norm > 0.5. Taps are clamped to the image, so
-    the result is meaningful for points inside the image. ``(B, 3, H, W), (B, N, 2) -> (B, N)``.
+    Taps are clamped to the image, so the result is meaningful for points inside the image.
+    ``(B, 3, H, W), (B, N, 2) -> (B, N)``.
     """
-    B, _, H, W = normal_map.shape
-    N = pixels.shape[1]
-    fg = (normal_map.detach().square().sum(dim=1) > 0.25).reshape(B, H * W)  # |n| > 0.5
+    return _foreground_at(_support_foreground(normal_map), pixels, normal_map.shape[-2:])
+
+
+def _foreground_at(support: Tensor, pixels: Tensor, size: tuple[int, int]) -> Tensor:
+    """:func:`_foreground` from the maps' :func:`_support_foreground` ``(B, H W)`` (kept by a caller
+    whose maps are fixed over many calls) and their ``size`` ``(H, W)``."""
+    H, W = size
     finite = torch.isfinite(pixels).all(dim=-1)
     safe = torch.where(finite[..., None], pixels.detach(), torch.zeros((), dtype=pixels.dtype, device=pixels.device))
     u0 = torch.floor(safe[..., 0]).clamp(0.0, float(W - 1)).to(torch.int64)
     v0 = torch.floor(safe[..., 1]).clamp(0.0, float(H - 1)).to(torch.int64)
-    u1 = (u0 + 1).clamp(max=W - 1)
-    v1 = (v0 + 1).clamp(max=H - 1)
-    index = torch.stack([v0 * W + u0, v0 * W + u1, v1 * W + u0, v1 * W + u1], dim=-1)  # (B, N, 4)
-    corners = torch.gather(fg, 1, index.reshape(B, N * 4)).reshape(B, N, 4)
-    return corners.all(dim=-1) & finite
+    return torch.gather(support, 1, v0 * W + u0) & finite
 
 
 def normal_residuals(

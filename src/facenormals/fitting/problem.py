@@ -38,7 +38,7 @@ from torch._C._functorch import is_functorch_wrapped_tensor
 
 from facenormals.core.check import check_all_finite, check_floating, check_shape
 from facenormals.energy import landmark_residuals, prior_residuals
-from facenormals.energy.residuals import _foreground as map_foreground
+from facenormals.energy.residuals import _foreground_at, _support_foreground
 from facenormals.fitting.rings import RingRows, Rings
 from facenormals.fitting.robust import cauchy_weights, check_scale, huber_weights
 from facenormals.geometry import (
@@ -52,7 +52,7 @@ from facenormals.mesh import vertex_normals
 from facenormals.models import MorphableModel
 from facenormals.optim.normal_equations import gram
 from facenormals.render import rasterize_depth, splat_zbuffer, visible_vertices
-from facenormals.sampling import sample_bicubic_with_gradient
+from facenormals.sampling import BicubicSampler
 
 __all__ = ["FitWeights", "HeadFitProblem"]
 
@@ -167,6 +167,10 @@ class HeadFitProblem:
         self.dtype = model.mean.dtype
         device = normal_maps.device
         self.normal_maps = normal_maps.to(self.dtype)
+        # The maps are fixed: their bicubic taps and foreground supports are tabulated once.
+        flat_maps = self.normal_maps.reshape(-1, 3, self.H, self.W)
+        self._sampler = BicubicSampler(flat_maps)
+        self._support = _support_foreground(flat_maps)  # (B V, H W)
         self.landmarks = landmarks.to(self.dtype)
         self.landmark_mask = landmark_mask
         if not bool((intrinsics_prior[..., 0] > 0).all()):
@@ -406,12 +410,13 @@ class HeadFitProblem:
         normals = torch.cat([layout.rings.normals(flat), flat.new_zeros(1, 3)])
         n_model = normals[layout.slot.reshape(-1, S)]  # (KV, S, 3)
         uv, _ = project_points(flat[layout.vertex.reshape(-1, S)], R, t, K)
-        maps = self._pick(self.normal_maps, index).reshape(-1, 3, self.H, self.W)
-        sampled, grad, inside = sample_bicubic_with_gradient(maps, uv)
+        images = None if index is None else (index[:, None] * self.V + torch.arange(self.V, device=index.device)).reshape(-1)
+        sampled, grad, inside = self._sampler.with_gradient(uv, images)
+        support = self._support if images is None else self._support.index_select(0, images)
         lm = verts[:, None, self.lm_index].expand(-1, self.V, -1, -1).reshape(verts.shape[0] * self.V, self.L, 3)
         lm_uv, _ = project_points(lm, R, t, K)
         geometry = _Geometry(x.clone(), key, layout, p, verts, R, t, K, n_model, sampled, grad,
-                             inside & map_foreground(maps, uv), lm, lm_uv)
+                             inside & _foreground_at(support, uv, (self.H, self.W)), lm, lm_uv)
         if plain:
             self._cached = geometry
         return geometry

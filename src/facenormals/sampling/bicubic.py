@@ -36,11 +36,12 @@ differentiated through; :math:`\lfloor\cdot\rfloor` is piecewise constant and th
 from __future__ import annotations
 
 import torch
-from torch import Tensor
+import torch.nn.functional as F
+from torch import Tensor, nn
 
 from facenormals.core.check import check_finite, check_floating, check_shape
 
-__all__ = ["sample_bicubic", "sample_bicubic_with_gradient"]
+__all__ = ["BicubicSampler", "sample_bicubic", "sample_bicubic_with_gradient"]
 
 #: Keys' free parameter used by OpenCV's ``INTER_CUBIC``.
 _A = -0.75
@@ -217,3 +218,123 @@ def sample_bicubic_with_gradient(image: Tensor, pixels: Tensor) -> tuple[Tensor,
     values = torch.where(finite[..., None], values, zero)
     grad = torch.where(finite[..., None, None], grad, zero)
     return values, grad, inside
+
+
+class BicubicSampler(nn.Module):
+    r""":func:`sample_bicubic` and :func:`sample_bicubic_with_gradient` of fixed images, for
+    sampling them many times (e.g. a normal map at every iteration of a fit).
+
+    At construction each cell of the images (base pixel :math:`(\lfloor v \rfloor, \lfloor u \rfloor)`,
+    clamped as in :func:`sample_bicubic`) gets its 4×4 border-replicated neighbourhood stored in one
+    row of a table, laid out for two batched products; a sample then reads one row instead of
+    gathering 16 taps per channel. Same interpolant, same values up to float rounding (measured:
+    identical), 1.5× faster on 5,000 points of a 3-channel 128² map with the gradient (see
+    ``docs/performance.md``). The table holds :math:`16 C (H + 5)(W + 5)` numbers per image, about
+    16× the image: for a few small images (normal maps), not for sampling a large photo once.
+
+    Differentiable w.r.t. the pixel coordinates (also under ``torch.func`` transforms); the images
+    are fixed at construction.
+
+    Args:
+        image: images ``(B, C, H, W)``, ``(u, v) = (0, 0)`` at the centre of the top-left pixel.
+
+    Shape:
+        - pixels: :math:`(K, N, 2)`, sampling image ``image_index[k]`` (default: image ``k``, ``K = B``)
+        - values: :math:`(K, N, C)`; d_values_d_pixels: :math:`(K, N, C, 2)`; inside: :math:`(K, N)`
+
+    Example:
+        >>> image = torch.arange(20.0).reshape(1, 1, 4, 5)  # I[v, u] = 5 v + u
+        >>> sampler = BicubicSampler(image)
+        >>> pixels = torch.tensor([[[2.0, 1.0], [1.5, 1.0], [-1.0, 0.0]]])
+        >>> values, inside = sampler(pixels)
+        >>> values[..., 0], inside
+        (tensor([[7.0000, 6.5000, 0.0000]]), tensor([[ True,  True, False]]))
+        >>> sampler.with_gradient(pixels[:, :1])[1]
+        tensor([[[[1.5000, 7.5000]]]])
+    """
+
+    table: Tensor
+
+    def __init__(self, image: Tensor) -> None:
+        super().__init__()
+        dims = check_shape(image, ["B", "C", "H", "W"], "image")
+        check_floating(image, "image")
+        if dims["H"] < 1 or dims["W"] < 1:
+            raise ValueError(f"image: expected H >= 1 and W >= 1, got shape {tuple(image.shape)}")
+        check_finite(image, "image")
+        self.num_images, self.channels, self.height, self.width = dims["B"], dims["C"], dims["H"], dims["W"]
+        # Base pixels run over [-3, H + 1] x [-3, W + 1] (beyond, every tap is clamped to the border
+        # anyway), taps from base - 1 to base + 2: pad by 4 on each side. Row layout (i, c, j) for
+        # row tap i, channel c and column tap j.
+        B, C, H, W = image.shape
+        if image.numel():
+            padded = F.pad(image.detach(), (4, 4, 4, 4), mode="replicate")
+            windows = padded.unfold(2, 4, 1).unfold(3, 4, 1)  # (B, C, H + 5, W + 5, 4 i, 4 j)
+            table = windows.permute(0, 2, 3, 4, 1, 5).reshape(-1, 16 * C).contiguous()
+        else:  # no image or no channel
+            table = image.new_zeros(B * (H + 5) * (W + 5), 16 * C)
+        self.register_buffer("table", table, persistent=False)
+
+    def extra_repr(self) -> str:
+        return f"images={self.num_images}, channels={self.channels}, size=({self.height}, {self.width})"
+
+    def _rows(self, pixels: Tensor, image_index: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The taps ``(K N, 4 C, 4)`` of each point, its fractions ``(K N, 2)``, finite and inside masks ``(K, N)``."""
+        check_shape(pixels, ["K", "N", 2], "pixels")
+        check_floating(pixels, "pixels")
+        table = self.table
+        if pixels.dtype != table.dtype or pixels.device != table.device:
+            raise ValueError(f"pixels: expected dtype {table.dtype} on {table.device} (the sampler's images), "
+                             f"got {pixels.dtype} on {pixels.device}")
+        K, N = pixels.shape[:2]
+        if image_index is None:
+            if K != self.num_images:
+                raise ValueError(f"pixels: expected shape (B, N, 2) with B={self.num_images} (the number of images) "
+                                 f"or an image_index, got {tuple(pixels.shape)}")
+            image_index = torch.arange(K, device=pixels.device)
+        else:
+            check_shape(image_index, [K], "image_index")
+            if image_index.dtype != torch.long or (K and not bool(((image_index >= 0) & (image_index < self.num_images)).all())):
+                raise ValueError(f"image_index: expected int64 indices in [0, {self.num_images}), got {image_index.dtype} "
+                                 f"{image_index.tolist() if K <= 8 else '...'}")
+        H, W = self.height, self.width
+        finite = torch.isfinite(pixels).all(dim=-1)
+        safe = torch.where(finite[..., None], pixels, torch.zeros((), dtype=pixels.dtype, device=pixels.device))
+        base = torch.floor(safe)
+        fraction = (safe - base).reshape(K * N, 2)
+        iu = base[..., 0].clamp(-3.0, float(W + 1)).to(torch.int64) + 3
+        iv = base[..., 1].clamp(-3.0, float(H + 1)).to(torch.int64) + 3
+        cell = (image_index[:, None] * (H + 5) + iv) * (W + 5) + iu
+        taps = table.index_select(0, cell.reshape(-1)).view(K * N, 4 * self.channels, 4)
+        u, v = safe.unbind(-1)
+        inside = finite & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        return taps, fraction, finite, inside
+
+    def _contract(self, taps: Tensor, cols: Tensor, rows: Tensor) -> Tensor:
+        """``out[n, l, c, k] = Σ_ij rows[n, l, i] taps[n, (i, c), j] cols[n, j, k]``: ``(KN, L, C, K')``."""
+        count = taps.shape[0]
+        partial = torch.bmm(taps, cols).view(count, 4, self.channels * cols.shape[2])  # (KN, 4 i, C K')
+        return torch.bmm(rows, partial).view(count, rows.shape[1], self.channels, cols.shape[2])
+
+    def forward(self, pixels: Tensor, image_index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(values (K, N, C), inside (K, N))`` as :func:`sample_bicubic`; ``image_index`` ``(K,)``
+        int64 names the image each row of ``pixels`` samples (default: row ``k`` samples image ``k``)."""
+        taps, fraction, finite, inside = self._rows(pixels, image_index)
+        K, N = finite.shape
+        out = self._contract(taps, _keys_weights(fraction[:, 0])[..., None], _keys_weights(fraction[:, 1])[:, None])
+        values = out.view(K, N, self.channels)
+        return torch.where(finite[..., None], values, torch.zeros((), dtype=values.dtype, device=values.device)), inside
+
+    def with_gradient(self, pixels: Tensor, image_index: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(values (K, N, C), d_values_d_pixels (K, N, C, 2), inside (K, N))`` as
+        :func:`sample_bicubic_with_gradient`; ``image_index`` as in :meth:`forward`."""
+        taps, fraction, finite, inside = self._rows(pixels, image_index)
+        K, N = finite.shape
+        tu, tv = fraction.unbind(-1)
+        cols = torch.stack([_keys_weights(tu), _keys_weight_derivatives(tu)], dim=-1)  # (KN, 4, 2)
+        rows = torch.stack([_keys_weights(tv), _keys_weight_derivatives(tv)], dim=-2)  # (KN, 2, 4)
+        out = self._contract(taps, cols, rows)  # (KN, l, c, k)
+        zero = torch.zeros((), dtype=out.dtype, device=out.device)
+        values = torch.where(finite[..., None], out[:, 0, :, 0].view(K, N, self.channels), zero)
+        grad = torch.stack([out[:, 0, :, 1], out[:, 1, :, 0]], dim=-1).view(K, N, self.channels, 2)
+        return values, torch.where(finite[..., None, None], grad, zero), inside
