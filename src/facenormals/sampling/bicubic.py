@@ -91,6 +91,28 @@ def _check_inputs(image: Tensor, pixels: Tensor) -> None:
     check_finite(image, "image")  # a NaN pixel would spread over its 4x4 neighbourhood unnoticed
 
 
+def _cells(pixels: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The cell of each point: ``(iu, iv, tu, tv, finite, inside)``, all ``(B, N)``.
+
+    ``iu, iv`` are the int64 base pixels ``floor(u), floor(v)`` clamped to ``[-3, W + 1]`` and
+    ``[-3, H + 1]`` (beyond, every tap is clamped to the border anyway; clamping before the conversion
+    keeps huge coordinates from overflowing), ``tu, tv`` the fractional parts (differentiable w.r.t.
+    ``pixels``), ``inside`` whether the point is finite and within the image.
+    """
+    finite = torch.isfinite(pixels).all(dim=-1)
+    # Non-finite pixels are replaced by 0 *before* any arithmetic so that neither the forward
+    # values nor the backward pass see NaN (torch.where routes a zero gradient to them).
+    safe = torch.where(finite[..., None], pixels, torch.zeros((), dtype=pixels.dtype, device=pixels.device))
+    u = safe[..., 0]
+    v = safe[..., 1]
+    u0 = torch.floor(u)
+    v0 = torch.floor(v)
+    iu = u0.clamp(-3.0, float(width + 1)).to(torch.int64)
+    iv = v0.clamp(-3.0, float(height + 1)).to(torch.int64)
+    inside = finite & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+    return iu, iv, u - u0, v - v0, finite, inside
+
+
 def _taps(image: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Gather the 4x4 neighbourhoods.
 
@@ -100,20 +122,7 @@ def _taps(image: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor
     """
     B, C, H, W = image.shape
     N = pixels.shape[1]
-    finite = torch.isfinite(pixels).all(dim=-1)
-    # Non-finite pixels are replaced by 0 *before* any arithmetic so that neither the forward
-    # values nor the backward pass see NaN (torch.where routes a zero gradient to them).
-    safe = torch.where(finite[..., None], pixels, torch.zeros((), dtype=pixels.dtype, device=pixels.device))
-    u = safe[..., 0]
-    v = safe[..., 1]
-    u0 = torch.floor(u)
-    v0 = torch.floor(v)
-    tu = u - u0
-    tv = v - v0
-    # Clamp the integer base before converting (huge coordinates would overflow int64); beyond
-    # these bounds every tap is clamped to the border anyway.
-    iu = u0.clamp(-3.0, float(W + 1)).to(torch.int64)
-    iv = v0.clamp(-3.0, float(H + 1)).to(torch.int64)
+    iu, iv, tu, tv, finite, inside = _cells(pixels, H, W)
     offsets = torch.arange(-1, 3, device=pixels.device, dtype=torch.int64)
     cols = (iu[..., None] + offsets).clamp(0, W - 1)  # (B, N, 4)
     rows = (iv[..., None] + offsets).clamp(0, H - 1)  # (B, N, 4)
@@ -121,7 +130,6 @@ def _taps(image: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor
     flat = image.reshape(B, C, H * W)
     index = index.reshape(B, 1, N * 16).expand(B, C, N * 16)
     taps = torch.gather(flat, 2, index).reshape(B, C, N, 4, 4)
-    inside = finite & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
     return taps, tu, tv, finite, inside
 
 
@@ -257,16 +265,15 @@ class BicubicSampler(nn.Module):
 
     def __init__(self, image: Tensor) -> None:
         super().__init__()
-        dims = check_shape(image, ["B", "C", "H", "W"], "image")
+        check_shape(image, ["B", "C", "H", "W"], "image")
         check_floating(image, "image")
-        if dims["H"] < 1 or dims["W"] < 1:
+        B, C, H, W = image.shape
+        if H < 1 or W < 1:
             raise ValueError(f"image: expected H >= 1 and W >= 1, got shape {tuple(image.shape)}")
         check_finite(image, "image")
-        self.num_images, self.channels, self.height, self.width = dims["B"], dims["C"], dims["H"], dims["W"]
-        # Base pixels run over [-3, H + 1] x [-3, W + 1] (beyond, every tap is clamped to the border
-        # anyway), taps from base - 1 to base + 2: pad by 4 on each side. Row layout (i, c, j) for
-        # row tap i, channel c and column tap j.
-        B, C, H, W = image.shape
+        self.num_images, self.channels, self.height, self.width = B, C, H, W
+        # Base pixels run over [-3, H + 1] x [-3, W + 1] (see _cells), taps from base - 1 to base + 2:
+        # pad by 4 on each side. Row layout (i, c, j) for row tap i, channel c and column tap j.
         if image.numel():
             padded = F.pad(image.detach(), (4, 4, 4, 4), mode="replicate")
             windows = padded.unfold(2, 4, 1).unfold(3, 4, 1)  # (B, C, H + 5, W + 5, 4 i, 4 j)
@@ -278,8 +285,9 @@ class BicubicSampler(nn.Module):
     def extra_repr(self) -> str:
         return f"images={self.num_images}, channels={self.channels}, size=({self.height}, {self.width})"
 
-    def _rows(self, pixels: Tensor, image_index: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The taps ``(K N, 4 C, 4)`` of each point, its fractions ``(K N, 2)``, finite and inside masks ``(K, N)``."""
+    def _rows(self, pixels: Tensor, image_index: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The taps ``(K N, 4 C, 4)`` of each point, its fractions ``tu, tv`` ``(K N,)``, finite and
+        inside masks ``(K, N)``."""
         check_shape(pixels, ["K", "N", 2], "pixels")
         check_floating(pixels, "pixels")
         table = self.table
@@ -298,17 +306,10 @@ class BicubicSampler(nn.Module):
                 raise ValueError(f"image_index: expected int64 indices in [0, {self.num_images}), got {image_index.dtype} "
                                  f"{image_index.tolist() if K <= 8 else '...'}")
         H, W = self.height, self.width
-        finite = torch.isfinite(pixels).all(dim=-1)
-        safe = torch.where(finite[..., None], pixels, torch.zeros((), dtype=pixels.dtype, device=pixels.device))
-        base = torch.floor(safe)
-        fraction = (safe - base).reshape(K * N, 2)
-        iu = base[..., 0].clamp(-3.0, float(W + 1)).to(torch.int64) + 3
-        iv = base[..., 1].clamp(-3.0, float(H + 1)).to(torch.int64) + 3
-        cell = (image_index[:, None] * (H + 5) + iv) * (W + 5) + iu
+        iu, iv, tu, tv, finite, inside = _cells(pixels, H, W)
+        cell = (image_index[:, None] * (H + 5) + iv + 3) * (W + 5) + iu + 3  # table rows start at base -3
         taps = table.index_select(0, cell.reshape(-1)).view(K * N, 4 * self.channels, 4)
-        u, v = safe.unbind(-1)
-        inside = finite & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-        return taps, fraction, finite, inside
+        return taps, tu.reshape(-1), tv.reshape(-1), finite, inside
 
     def _contract(self, taps: Tensor, cols: Tensor, rows: Tensor) -> Tensor:
         """``out[n, l, c, k] = Σ_ij rows[n, l, i] taps[n, (i, c), j] cols[n, j, k]``: ``(KN, L, C, K')``."""
@@ -319,18 +320,17 @@ class BicubicSampler(nn.Module):
     def forward(self, pixels: Tensor, image_index: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``(values (K, N, C), inside (K, N))`` as :func:`sample_bicubic`; ``image_index`` ``(K,)``
         int64 names the image each row of ``pixels`` samples (default: row ``k`` samples image ``k``)."""
-        taps, fraction, finite, inside = self._rows(pixels, image_index)
+        taps, tu, tv, finite, inside = self._rows(pixels, image_index)
         K, N = finite.shape
-        out = self._contract(taps, _keys_weights(fraction[:, 0])[..., None], _keys_weights(fraction[:, 1])[:, None])
+        out = self._contract(taps, _keys_weights(tu)[..., None], _keys_weights(tv)[:, None])
         values = out.view(K, N, self.channels)
         return torch.where(finite[..., None], values, torch.zeros((), dtype=values.dtype, device=values.device)), inside
 
     def with_gradient(self, pixels: Tensor, image_index: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """``(values (K, N, C), d_values_d_pixels (K, N, C, 2), inside (K, N))`` as
         :func:`sample_bicubic_with_gradient`; ``image_index`` as in :meth:`forward`."""
-        taps, fraction, finite, inside = self._rows(pixels, image_index)
+        taps, tu, tv, finite, inside = self._rows(pixels, image_index)
         K, N = finite.shape
-        tu, tv = fraction.unbind(-1)
         cols = torch.stack([_keys_weights(tu), _keys_weight_derivatives(tu)], dim=-1)  # (KN, 4, 2)
         rows = torch.stack([_keys_weights(tv), _keys_weight_derivatives(tv)], dim=-2)  # (KN, 2, 4)
         out = self._contract(taps, cols, rows)  # (KN, l, c, k)
