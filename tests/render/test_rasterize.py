@@ -125,6 +125,36 @@ def test_interpolation_checks_the_faces():
 
 
 @pytest.mark.parametrize("cull", [False, True])
+def test_z_buffer_matches_a_naive_loop_over_pixels_and_triangles(cull):
+    """Overlapping triangles of all sizes in two batch elements, crossing the image's borders, some
+    behind the camera: each pixel's nearest triangle and depth, by a loop over every pixel and triangle."""
+    g = torch.Generator().manual_seed(5)
+    uv = torch.rand(2, 40, 2, generator=g, dtype=torch.float64) * torch.tensor([28.0, 22.0]) - 4
+    depth = torch.rand(2, 40, generator=g, dtype=torch.float64) * 10 + 1
+    depth[1, :4] = -1.0
+    faces = torch.randint(0, 40, (25, 3), generator=g)
+    frags = rasterize_triangles(uv, depth, faces, (17, 21), cull_backfaces=cull)
+    for b in range(2):
+        best = torch.full((17, 21), float("inf"), dtype=torch.float64)
+        face = torch.full((17, 21), -1)
+        for f, tri in enumerate(faces.tolist()):
+            (x0, y0), (x1, y1), (x2, y2) = uv[b, tri].tolist()
+            area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+            if min(depth[b, tri].tolist()) <= 1e-6 or abs(area) <= 1e-12 or (cull and area >= 0):
+                continue
+            covered = naive_cover(uv[b], tri, 17, 21)
+            for v, u in covered.nonzero().tolist():
+                w0 = ((x1 - u) * (y2 - v) - (y1 - v) * (x2 - u)) / area
+                w1 = ((x2 - u) * (y0 - v) - (y2 - v) * (x0 - u)) / area
+                z = 1.0 / sum(w / d for w, d in zip((w0, w1, 1 - w0 - w1), depth[b, tri].tolist()))
+                if z < best[v, u]:
+                    best[v, u], face[v, u] = z, f
+        assert torch.equal(frags.face_index[b], face)
+        assert_close(frags.depth[b], best, atol=1e-12, rtol=1e-12)
+    assert 100 < int(frags.mask.sum()) < 2 * 17 * 21
+
+
+@pytest.mark.parametrize("cull", [False, True])
 def test_depth_only_equals_full_rasteriser(cull):
     # Random overlapping triangles in two batch elements, some behind the camera or off-screen.
     g = torch.Generator().manual_seed(3)

@@ -53,8 +53,8 @@ _CELLS_PER_CHUNK = 1 << 21
 
 
 def _buckets(extent: Tensor) -> list[tuple[Tensor, int, int]]:
-    """Group the triangles with bounding boxes ``extent`` ``(B, F, 2)`` (columns, rows; 0 for the
-    skipped ones) by grid size: ``(mask (B, F), width, height)`` per occupied pair of powers of two."""
+    """Group the triangles with bounding boxes ``extent`` ``(..., 2)`` (columns, rows; 0 for the
+    skipped ones) by grid size: ``(mask (...), width, height)`` per occupied pair of powers of two."""
     valid = (extent > 0).all(-1)
     log2 = torch.ceil(torch.log2(extent.clamp(min=1.0))).long().clamp(min=1)  # grids of 2 or more
     square = log2.amax(-1, keepdim=True)  # boxes up to 8 px: square grids, fewer buckets (less overhead)
@@ -83,45 +83,76 @@ def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, he
     ``(b H + v) W + u``. Each pair comes once."""
     device = pixels.device
     work = torch.float64
-    faces = faces.to(device=device, dtype=torch.long)
-    tri_uv = pixels.to(work)[:, faces]  # (B, F, 3, 2)
-    tri_z = depth.to(work)[:, faces]  # (B, F, 3)
-    p0, p1, p2 = tri_uv.unbind(2)
-    area = (p1[..., 0] - p0[..., 0]) * (p2[..., 1] - p0[..., 1]) - (p1[..., 1] - p0[..., 1]) * (p2[..., 0] - p0[..., 0])
-    valid = (tri_z > near).all(-1) & torch.isfinite(tri_uv).all(-1).all(-1) & (area.abs() > 1e-12)
+    batch, num_vertices = depth.shape
+    count = faces.shape[0]
+    # corners (u, v, z) of every (subject, face), gathered in one pass: (3 coordinates, B, 3 corners, F)
+    corners = torch.cat([pixels.to(work), depth.to(work)[..., None]], -1).reshape(-1, 3)
+    index = faces.to(device=device, dtype=torch.long).T.reshape(1, -1)
+    index = (index + num_vertices * torch.arange(batch, device=device)[:, None]).reshape(-1)
+    u, v, z = corners.index_select(0, index).T.reshape(3, batch, 3, count)
+    area = (u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (v[:, 1] - v[:, 0]) * (u[:, 2] - u[:, 0])  # (B, F)
+    valid = (z > near).all(1) & (area.abs() > 1e-12)  # the inputs are finite (checked)
     if cull_backfaces:  # facing the camera: counter-clockwise on screen, i.e. area < 0 with v pointing down
         valid &= area < 0
-    lo = torch.ceil(tri_uv.amin(2) - 1e-9).clamp(min=0)
-    hi = torch.floor(tri_uv.amax(2) + 1e-9)
-    hi = torch.minimum(hi, torch.tensor([width - 1, height - 1], dtype=work, device=device))
-    valid &= (hi >= lo).all(-1)
-    extent = torch.where(valid[..., None], hi - lo + 1, torch.zeros_like(hi))  # (B, F, 2)
+    lo_u, lo_v = torch.ceil(u.amin(1) - 1e-9).clamp(min=0), torch.ceil(v.amin(1) - 1e-9).clamp(min=0)
+    hi_u, hi_v = torch.floor(u.amax(1) + 1e-9).clamp(max=width - 1), torch.floor(v.amax(1) + 1e-9).clamp(max=height - 1)
+    valid &= (hi_u >= lo_u) & (hi_v >= lo_v)
+    tri = torch.nonzero(valid.reshape(-1)).squeeze(1)  # flat (subject, face) indices of the boxes to test
 
-    def cover(b_idx: Tensor, f_idx: Tensor, du: Tensor, dv: Tensor):
-        pu = lo[b_idx, f_idx, 0, None] + du  # (T, cells)
-        pv = lo[b_idx, f_idx, 1, None] + dv
-        q0, q1, q2 = p0[b_idx, f_idx], p1[b_idx, f_idx], p2[b_idx, f_idx]
-        a = area[b_idx, f_idx, None]
-        w0 = ((q1[:, None, 0] - pu) * (q2[:, None, 1] - pv) - (q1[:, None, 1] - pv) * (q2[:, None, 0] - pu)) / a
-        w1 = ((q2[:, None, 0] - pu) * (q0[:, None, 1] - pv) - (q2[:, None, 1] - pv) * (q0[:, None, 0] - pu)) / a
-        w2 = 1.0 - w0 - w1
-        screen = torch.stack([w0, w1, w2], -1)
-        inside = (screen >= -1e-9).all(-1) & (pu <= hi[b_idx, f_idx, 0, None]) & (pv <= hi[b_idx, f_idx, 1, None])
-        t_idx, k_idx = torch.nonzero(inside, as_tuple=True)
-        screen = screen[t_idx, k_idx]
-        inv_z = screen / tri_z[b_idx[t_idx], f_idx[t_idx]]
-        z = 1.0 / inv_z.sum(-1)
-        pix = (b_idx[t_idx] * height + pv[t_idx, k_idx].long()) * width + pu[t_idx, k_idx].long()
-        return pix, f_idx[t_idx], z, (inv_z * z[:, None] if barycentric else None)
+    # The screen barycentrics w0, w1 are affine in the pixel centre: for the edge (a, b) opposite a
+    # corner, (a - p) x (b - p) = a x b + p_u (a_v - b_v) + p_v (b_u - a_u). Relative to the box's
+    # first pixel centre (lo_u, lo_v) (an exact shift) they are c + a du + b dv on the box's cells
+    # (du, dv).
+    u, v = u - lo_u[:, None], v - lo_v[:, None]
 
-    for in_bucket, grid_w, grid_h in _buckets(extent):
-        b_all, f_all = torch.nonzero(in_bucket, as_tuple=True)
+    def edge(i: int, j: int) -> tuple[Tensor, Tensor, Tensor]:
+        return (u[:, i] * v[:, j] - v[:, i] * u[:, j]) / area, (v[:, i] - v[:, j]) / area, (u[:, j] - u[:, i]) / area
+
+    (c0, a0, b0), (c1, a1, b1) = edge(1, 2), edge(2, 0)
+    # one column per triangle: its box's first cell and size - 1, (c, a, b) of w0 and w1 interleaved,
+    # the corners' depths; columns are gathered through the flat storage (index_select along
+    # dimension 0 is several times faster than along dimension 1)
+    table = _columns(torch.stack([lo_u, lo_v, hi_u - lo_u, hi_v - lo_v, c0, c1, a0, a1, b0, b1, *z.unbind(1)]).view(13, -1),
+                     tri)  # (13, T)
+
+    def cover(pos: Tensor, grid: Tensor):
+        """The triangles ``tri[pos]`` on the cells ``grid`` ``(cells, 3)`` (columns ``1, du, dv``)."""
+        n = pos.shape[0]
+        rows = _columns(table, pos)
+        # (cells, 2 n): w0 of each triangle, then w1; elementwise, since a matrix product may round
+        # differently with the chunk's size
+        coef = rows[4:10].view(3, 2 * n)
+        w = (coef[1] * grid[:, 1:2]).add_(coef[0]).add_(coef[2] * grid[:, 2:3])
+        w0, w1 = w[:, :n], w[:, n:]
+        inside = (w0 >= -1e-9) & (w1 >= -1e-9) & (1.0 - w0 - w1 >= -1e-9)
+        inside &= (grid[:, 1:2] <= rows[2]) & (grid[:, 2:3] <= rows[3])  # in the box, so in the image
+        cell = torch.nonzero(inside.view(-1)).squeeze(1)
+        k_idx = cell // n
+        t_idx = cell - k_idx * n
+        at = cell + k_idx * n  # w0 in w's storage, w1 n further
+        w0, w1 = w.view(-1).index_select(0, at), w.view(-1).index_select(0, at + n)
+        rows = _columns(rows, t_idx)
+        inv_z = torch.stack([w0, w1, 1.0 - w0 - w1], -1) / rows[10:13].T
+        depth_ = 1.0 / inv_z.sum(-1)
+        pu, pv = (rows[:2].T + grid[:, 1:].index_select(0, k_idx)).long().unbind(1)
+        flat = tri.index_select(0, pos.index_select(0, t_idx))
+        pix = ((flat // count) * height + pv) * width + pu
+        return pix, flat % count, depth_, (inv_z * depth_[:, None] if barycentric else None)
+
+    for in_bucket, grid_w, grid_h in _buckets((table[2:4] + 1).T):
+        pos = torch.nonzero(in_bucket).squeeze(1)
         dv, du = torch.meshgrid(torch.arange(grid_h, device=device, dtype=work),
                                 torch.arange(grid_w, device=device, dtype=work), indexing="ij")
-        du, dv = du.reshape(1, -1), dv.reshape(1, -1)
+        grid = torch.stack([torch.ones_like(du), du, dv], -1).reshape(-1, 3)
         chunk = max(1, _CELLS_PER_CHUNK // (grid_w * grid_h))
-        for first in range(0, b_all.numel(), chunk):
-            yield cover(b_all[first : first + chunk], f_all[first : first + chunk], du, dv)
+        for first in range(0, pos.numel(), chunk):
+            yield cover(pos[first : first + chunk], grid)
+
+
+def _columns(table: Tensor, index: Tensor) -> Tensor:
+    """``table[:, index]`` of a contiguous ``(R, C)`` table, gathered from its flat storage."""
+    rows = torch.arange(table.shape[0], device=index.device)[:, None] * table.shape[1]
+    return table.view(-1).index_select(0, (rows + index).view(-1)).view(table.shape[0], -1)
 
 
 @torch.no_grad()
