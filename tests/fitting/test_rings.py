@@ -25,6 +25,22 @@ def test_blocks_times_basis_equal_the_normal_jacobian():
     torch.testing.assert_close(dn, reference.reshape(-1, 3, model.num_shape)[flat], rtol=1e-10, atol=1e-12)
 
 
+def test_shared_face_geometry_gives_the_same_normals_and_derivatives():
+    """A fit computes the ring faces once per point for its residuals and its Jacobian."""
+    model = builtin_head_model(dtype=torch.float64)
+    verts = model(torch.randn(1, model.num_shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64))
+    flat = verts.reshape(-1, 3)
+    rings = Rings.build(model.faces, torch.arange(2, model.num_vertices, 3), model.num_vertices)
+    faces = rings.face_geometry(flat)
+    assert faces[0].shape == (rings.faces.shape[0], 3, 3) and faces[1].shape == faces[0].shape[::2]
+    assert torch.equal(rings.normals(flat, faces), rings.normals(flat))
+    for shared, alone in zip(rings.normal_derivatives(flat, faces), rings.normal_derivatives(flat)):
+        assert torch.equal(shared, alone)
+    # the geometry is what is used: another mesh's faces give that mesh's normals
+    other = (flat * torch.tensor([1.0, 1.3, 0.8], dtype=torch.float64))
+    assert torch.equal(rings.normals(flat, rings.face_geometry(other)), rings.normals(other))
+
+
 def test_row_structure_is_the_dense_block_matrix():
     model = builtin_head_model(dtype=torch.float64)
     N = model.num_vertices

@@ -123,32 +123,36 @@ class Rings:
             cache[dtype] = (_summing(slot_rows, slot_cols, U, F, dtype), _summing(block_rows, block_cols, nb, 3 * F, dtype))
         return cache[dtype]
 
-    def _face_normals(self, vertices: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Corners ``(F, 3, 3)``, unit normals ``(F, 3)`` and ``|c|`` ``(F, 1)`` from flat vertices ``(B·N, 3)``."""
+    def face_geometry(self, vertices: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Corners ``(F, 3, 3)``, unit normals ``(F, 3)`` and ``|c|`` ``(F, 1)`` of the ring faces from
+        flat vertices ``(B·N, 3)``: what :meth:`normals` and :meth:`normal_derivatives` start from, for
+        a caller that needs both at the same vertices (a fit's residuals, then its Jacobian)."""
         p = vertices[self.faces]
         c = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         norm = c.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return p, c / norm, norm
 
-    def normals(self, vertices: Tensor) -> Tensor:
-        """Unit ring normals ``(U, 3)`` of the slots from flat vertices ``(B·N, 3)``; differentiable,
-        also under ``torch.func`` transforms."""
-        m = self._face_normals(vertices)[1]
+    def normals(self, vertices: Tensor, face_geometry: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
+        """Unit ring normals ``(U, 3)`` of the slots from flat vertices ``(B·N, 3)`` (or their
+        :meth:`face_geometry`); differentiable, also under ``torch.func`` transforms."""
+        m = (face_geometry or self.face_geometry(vertices))[1]
         s = m.new_zeros(self.num_slots + 1, 3)
         for k in range(3):  # out of place: works under vmap / jvp
             s = s.index_add(0, self.corner_slot[:, k], m)
         s = s[:-1]
         return s / s.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
-    def normal_derivatives(self, vertices: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        r"""Normals ``(U, 3)``, projectors ``(U, 3, 3)`` and raw blocks ``(nb, 3, 3)`` from flat vertices.
+    def normal_derivatives(self, vertices: Tensor, face_geometry: tuple[Tensor, Tensor, Tensor] | None = None
+                           ) -> tuple[Tensor, Tensor, Tensor]:
+        r"""Normals ``(U, 3)``, projectors ``(U, 3, 3)`` and raw blocks ``(nb, 3, 3)`` from flat vertices
+        (or their :meth:`face_geometry`).
 
         Block ``b`` of :math:`\partial n / \partial p` is ``projector[block_slot[b]] @ raw[b]``, with
         the projector :math:`(I - n n^\top) / \lVert s \rVert` of the row's slot (kept apart so that
         a caller can fold its own left factor into it).
         """
         slot_sum, block_sum = self._sum_matrices(vertices.dtype)
-        p, m, c_norm = self._face_normals(vertices)
+        p, m, c_norm = face_geometry or self.face_geometry(vertices)
         s = slot_sum @ m
         s_norm = s.norm(dim=1, keepdim=True).clamp_min(1e-12)
         n = s / s_norm
