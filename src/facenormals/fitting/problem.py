@@ -410,8 +410,8 @@ class HeadFitProblem:
         layout = self._layout(index)
         S = self.vis_index.shape[-1]
         flat = verts.reshape(-1, 3)
-        faces = layout.rings.face_geometry(flat)
-        normals = torch.cat([layout.rings.normals(flat, faces), flat.new_zeros(1, 3)])
+        face_geometry = layout.rings.face_geometry(flat)
+        normals = torch.cat([layout.rings.normals(flat, face_geometry), flat.new_zeros(1, 3)])
         n_model = normals[layout.slot.reshape(-1, S)]  # (KV, S, 3)
         uv, _ = project_points(flat[layout.vertex.reshape(-1, S)], R, t, K)
         images = None if index is None else (index[:, None] * self.V + torch.arange(self.V, device=index.device)).reshape(-1)
@@ -419,7 +419,7 @@ class HeadFitProblem:
         support = self._support if images is None else self._support.index_select(0, images)
         lm = verts[:, None, self.lm_index].expand(-1, self.V, -1, -1).reshape(verts.shape[0] * self.V, self.L, 3)
         lm_uv, _ = project_points(lm, R, t, K)
-        geometry = _Geometry(x.clone(), key, layout, p, verts, R, t, K, faces, n_model, sampled, grad,
+        geometry = _Geometry(x.clone(), key, layout, p, verts, R, t, K, face_geometry, n_model, sampled, grad,
                              inside & _foreground_at(support, uv, (self.H, self.W)), lm, lm_uv)
         if plain:
             self._cached = geometry
@@ -471,7 +471,7 @@ class HeadFitProblem:
         count, V, S, L, C, pv = x.shape[0], self.V, self.vis_index.shape[-1], self.L, self.C, self.per_view
         D = euler_rotation_derivatives(g.p["angles"].reshape(-1, 3))  # (KV, 3, 3, 3)
         flat = g.verts.reshape(-1, 3)
-        _, projector, raw = layout.rings.normal_derivatives(flat, g.faces)
+        _, projector, raw = layout.rings.normal_derivatives(flat, g.face_geometry)
 
         # Normal rows: view columns densely, shape columns as one sparse product with the basis.
         PR, A_view = self._view_columns(flat[layout.vertex.reshape(-1, S)] + t[:, None], R, D, g.K)
@@ -556,7 +556,7 @@ class _Geometry:
     R: Tensor  # (KV, 3, 3)
     t: Tensor  # (KV, 3)
     K: Tensor  # (KV, 3)
-    faces: tuple[Tensor, Tensor, Tensor]  # the ring faces' corners, unit normals and |c| (Rings.face_geometry)
+    face_geometry: tuple[Tensor, Tensor, Tensor]  # the ring faces' corners, unit normals and |c|
     n_model: Tensor  # (KV, S, 3) ring normals of the residual vertices, model frame
     sampled: Tensor  # (KV, S, 3) the maps at their projections
     grad: Tensor  # (KV, S, 3, 2) and the maps' derivatives there

@@ -111,8 +111,8 @@ def _covered_pixels(pixels: Tensor, depth: Tensor, faces: Tensor, batch: int, he
     # one column per triangle: its box's first cell and size - 1, (c, a, b) of w0 and w1 interleaved,
     # the corners' depths; columns are gathered through the flat storage (index_select along
     # dimension 0 is several times faster than along dimension 1)
-    table = _columns(torch.stack([lo_u, lo_v, hi_u - lo_u, hi_v - lo_v, c0, c1, a0, a1, b0, b1, *z.unbind(1)]).view(13, -1),
-                     tri)  # (13, T)
+    columns = torch.stack([lo_u, lo_v, hi_u - lo_u, hi_v - lo_v, c0, c1, a0, a1, b0, b1, *z.unbind(1)])
+    table = _columns(columns.view(13, -1), tri)  # (13, T)
 
     def cover(pos: Tensor, grid: Tensor):
         """The triangles ``tri[pos]`` on the cells ``grid`` ``(cells, 2)`` (columns ``du, dv``)."""
