@@ -249,6 +249,23 @@ def test_landmark_residuals_nan_targets_under_mask():
     assert_close(targets.grad, -pixels.grad)
 
 
+def test_landmark_residuals_refuse_nan_where_a_landmark_counts():
+    pixels = torch.tensor([[[10.0, 20.0], [30.0, 40.0]]])
+    targets = torch.tensor([[[11.0, 18.0], [30.0, 40.0]]])
+    bad = targets.clone()
+    bad[0, 1, 0] = float("nan")
+    with pytest.raises(ValueError, match="targets: expected finite values, got 1 NaN"):
+        landmark_residuals(pixels, bad)  # no mask: every landmark counts
+    with pytest.raises(ValueError, match="targets: expected finite values"):
+        landmark_residuals(pixels, bad, torch.tensor([[True, True]]))
+    assert torch.equal(landmark_residuals(pixels, bad, torch.tensor([[True, False]]))[0, 1], torch.zeros(2))
+    bad_pixels = pixels.clone()
+    bad_pixels[0, 0, 1] = float("inf")
+    with pytest.raises(ValueError, match="pixels: expected finite values, got 1 NaN or infinite"):
+        landmark_residuals(bad_pixels, targets, torch.tensor([[True, False]]))
+    assert torch.equal(landmark_residuals(bad_pixels, targets, torch.tensor([[False, True]])), torch.zeros(1, 2, 2))
+
+
 def test_landmark_residuals_gradcheck():
     g = torch.Generator().manual_seed(1)
     pixels = torch.rand(2, 5, 2, generator=g, dtype=torch.float64, requires_grad=True)
@@ -326,8 +343,12 @@ def test_prior_residuals_bad_inputs():
         prior_residuals(coeffs, torch.tensor([1.0, 0.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="std: expected values > 0"):
         prior_residuals(coeffs, torch.tensor([1.0, -2.0, 1.0, 1.0]))
-    with pytest.raises(ValueError, match="std: expected values > 0"):
+    with pytest.raises(ValueError, match="std: expected finite values, got 1 NaN"):
         prior_residuals(coeffs, torch.tensor([1.0, float("nan"), 1.0, 1.0]))
+    with pytest.raises(ValueError, match="std: expected finite values, got 1 NaN or infinite"):
+        prior_residuals(coeffs, torch.tensor([1.0, float("inf"), 1.0, 1.0]))  # would zero the prior silently
+    with pytest.raises(ValueError, match="coeffs: expected finite values, got 1 NaN"):
+        prior_residuals(torch.tensor([[float("nan"), 1.0, 0.0, 0.0]]), std)
     with pytest.raises(ValueError, match="floating"):
         prior_residuals(coeffs.long(), std)
     with pytest.raises(ValueError, match="dtype"):

@@ -178,3 +178,15 @@ def test_projection_jacobian_refuses_what_project_points_refuses():
         projection_jacobian(points, torch.tensor([[float("inf"), 64.0, 64.0]]))
     with pytest.raises(ValueError, match="intrinsics: expected focal lengths f > 0, got -300"):
         projection_jacobian(points, torch.tensor([[-300.0, 64.0, 64.0]]))
+
+
+@pytest.mark.parametrize("eps", [float("nan"), 0.0, -1.0, "1e-9", None])
+def test_eps_must_be_a_positive_number(eps):
+    """Regression: a NaN, zero or negative eps gave inf / NaN pixels and Jacobians silently."""
+    from facenormals.geometry import projection_jacobian
+
+    points, K = torch.tensor([[[1.0, 0.0, 0.0]]]), torch.tensor([[500.0, 32.0, 32.0]])
+    with pytest.raises(ValueError, match="eps: expected"):
+        project_points(points, torch.eye(3)[None], torch.zeros(1, 3), K, eps=eps)
+    with pytest.raises(ValueError, match="eps: expected"):
+        projection_jacobian(points, K, eps=eps)

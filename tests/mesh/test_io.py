@@ -59,6 +59,15 @@ def test_faces_must_index_the_vertices(tmp_path):
                    "3 0 1 2\n3 0 1 9\n")
     with pytest.raises(ValueError, match=r"bad.ply: faces: expected vertex indices in \[0, 3\), got values in \[0, 9\]"):
         load_mesh(bad)
+    # OBJ indices start at 1: trimesh reads a 0 as the last vertex, a degenerate triangle, silently
+    for name, face in (("zero.obj", "f 0 1 2"), ("before_first.obj", "f 1 2 -4")):
+        path = tmp_path / name
+        path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\n" + face + "\n")
+        with pytest.raises(ValueError, match=name + ": a face refers to vertex index 0 or to one before the first"):
+            load_mesh(path)
+    with pytest.raises(ValueError, match=r"faces: expected at least one triangle, got shape \(0, 3\)"):
+        save_mesh(tmp_path / "empty.ply", vertices, torch.zeros(0, 3, dtype=torch.long))  # load_mesh refuses it
+    assert not (tmp_path / "empty.ply").exists()
 
 
 def test_load_mesh_dtype_must_be_floating(tmp_path):

@@ -614,7 +614,11 @@ def test_bad_jacobian_fn_raises(jacobian_fn):
         ("damping", -1.0),
         ("ftol", math.nan),
         ("min_damping", 0.0),
+        ("min_damping", "1e-9"),
+        ("min_damping", None),
         ("max_damping", 1e-20),
+        ("max_damping", "1e9"),
+        ("max_damping", math.inf),
     ],
 )
 def test_bad_options_raise(option, value):

@@ -125,11 +125,24 @@ def test_given_normals_must_match_the_vertices(posed_head):
     assert nmap.dtype == torch.float64
     with pytest.raises(ValueError, match=r"normals: expected dtype torch.float64 \(the dtype of vertices\), got torch.float32"):
         render_normal_map(vertices, model.faces, R, t, K, (32, 32), normals=normals.float())
+    with pytest.raises(ValueError, match=r"rotation: expected dtype torch.float64 \(the dtype of vertices\), got torch.float32"):
+        render_normal_map(vertices, model.faces, R.float(), t, K, (32, 32))
+    with pytest.raises(ValueError, match=r"translation: expected shape \(B, 3\), got \(1, 2\)"):
+        render_normal_map(vertices, model.faces, R, t[:, :2], K, (32, 32))
 
 
 def test_unoccluded_points_checks_the_tolerance():
     with pytest.raises(ValueError, match="tolerance: expected a finite number >= 0, got nan"):
         unoccluded_points(torch.ones(1, 1, 2), torch.ones(1, 1), torch.ones(1, 3, 3), tolerance=float("nan"))
+
+
+def test_unoccluded_points_refuse_a_nan_depth_unless_the_point_projects_nowhere():
+    """Regression: a NaN depth read as hidden, silently."""
+    zbuffer = torch.full((1, 3, 3), 5.0)
+    with pytest.raises(ValueError, match="depth: expected finite values, got 1 NaN"):
+        unoccluded_points(torch.tensor([[[1.0, 1.0]]]), torch.tensor([[float("nan")]]), zbuffer)
+    nowhere = torch.tensor([[[float("nan"), float("nan")], [1.0, 1.0]]])
+    assert unoccluded_points(nowhere, torch.tensor([[float("nan"), 5.0]]), zbuffer).tolist() == [[False, True]]
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

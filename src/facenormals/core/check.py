@@ -269,6 +269,24 @@ def check_real(value: object, name: str) -> float:
     return number
 
 
+def check_positive(value: object, name: str) -> float:
+    """Return ``value`` as a float, raising ``ValueError`` unless it is a finite real number > 0
+    (as :func:`check_real`).
+
+    Example:
+        >>> check_positive(1e-9, "eps")
+        1e-09
+        >>> check_positive(0.0, "eps")
+        Traceback (most recent call last):
+        ...
+        ValueError: eps: expected a finite number > 0, got 0.0
+    """
+    number = check_real(value, name)
+    if number <= 0:
+        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    return number
+
+
 def check_integer(value: object, name: str, minimum: int | None = None) -> int:
     """Return ``value`` as an ``int``, raising ``ValueError`` unless it is an integer (a Python or
     numpy integer or an integer 0-d tensor; not a bool, not a float) of at least ``minimum``.

@@ -167,8 +167,7 @@ def landmark_residuals(
     Args:
         pixels: projected model landmarks :math:`z_j` as ``(u, v)`` in pixels.
         targets: detected landmarks :math:`b_j` in pixels.
-        mask: optional, ``True`` where the landmark is present; ``None`` uses every landmark
-            (then ``targets`` must be finite for the residuals to be).
+        mask: optional, ``True`` where the landmark is present; ``None`` uses every landmark.
         weight: the term weight :math:`\lambda \ge 0`.
 
     Returns:
@@ -176,7 +175,8 @@ def landmark_residuals(
 
     Raises:
         ValueError: on wrong shapes, mismatched batch or landmark counts, non-floating inputs,
-            mismatched dtypes, a non-bool ``mask`` or a negative ``weight``.
+            mismatched dtypes, a non-bool ``mask``, a negative ``weight``, or non-finite ``pixels``
+            or ``targets`` of landmarks in use.
 
     Shape:
         - pixels: :math:`(B, L, 2)`
@@ -197,6 +197,9 @@ def landmark_residuals(
     check_floating(targets, "targets")
     check_same_dtype_device(pixels, "pixels", targets=targets)
     _check_mask(mask, "mask", dims, "L", pixels.device)
+    # a NaN residual would poison the whole solve; masked-out landmarks may carry anything
+    used = (lambda x: x) if mask is None else (lambda x: x.masked_fill(~mask[..., None], 0.0))
+    check_all_finite(pixels=used(pixels.detach()), targets=used(targets.detach()))
     scale = math.sqrt(check_nonnegative(weight, "weight"))
 
     if mask is None:
@@ -227,8 +230,9 @@ def prior_residuals(coeffs: Tensor, std: Tensor, weight: float = 1.0) -> Tensor:
         The residuals.
 
     Raises:
-        ValueError: on wrong shapes, non-floating inputs, mismatched dtypes, ``std <= 0`` (checked
-            outside ``torch.compile`` only) or a negative ``weight``.
+        ValueError: on wrong shapes, non-floating inputs, mismatched dtypes, non-finite ``coeffs``,
+            ``std`` not finite and > 0 (both checked outside ``torch.compile`` only) or a negative
+            ``weight``.
 
     Shape:
         - coeffs: :math:`(B, K)`
@@ -248,8 +252,9 @@ def prior_residuals(coeffs: Tensor, std: Tensor, weight: float = 1.0) -> Tensor:
     check_floating(std, "std")
     check_same_dtype_device(coeffs, "coeffs", std=std)
     scale = math.sqrt(check_nonnegative(weight, "weight"))
+    check_all_finite(coeffs=coeffs.detach(), std=std.detach())
     if not torch.compiler.is_compiling() and not bool((std > 0).all()):
-        raise ValueError(f"std: expected values > 0, got {int((~(std > 0)).sum())} entries <= 0 or NaN")
+        raise ValueError(f"std: expected values > 0, got {int((~(std > 0)).sum())} entries <= 0")
 
     residuals = coeffs / std
     if scale != 1.0:

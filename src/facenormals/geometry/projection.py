@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_all_finite, check_floating, check_same_dtype_device, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_positive, check_same_dtype_device, check_shape
 
 __all__ = ["project_points", "projection_jacobian", "transform_points"]
 
@@ -82,8 +82,8 @@ def project_points(
         ``(pixels, depth)``: the pixel coordinates ``(u, v)`` and the camera-frame depth ``z``.
 
     Raises:
-        ValueError: on wrong shapes, mismatched batch sizes, non-floating or non-finite inputs, or a
-            focal length ``f <= 0``.
+        ValueError: on wrong shapes, mismatched batch sizes, non-floating or non-finite inputs, a
+            focal length ``f <= 0`` or an ``eps`` that is not a finite number > 0.
 
     Shape:
         - points: :math:`(B, N, 3)`
@@ -102,6 +102,7 @@ def project_points(
     """
     _check_pose(points, rotation, translation, intrinsics=intrinsics)
     _check_focal(intrinsics)
+    eps = check_positive(eps, "eps")
     if points.dtype in _HALF:  # f·x overflows float16 at ~65k (f = 1000 px, x = 66 mm); exact in float32
         pixels, z = project_points(points.float(), rotation.float(), translation.float(), intrinsics.float(), eps)
         return pixels.to(points.dtype), z.to(points.dtype)
@@ -131,8 +132,8 @@ def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 
         eps: smallest depth magnitude, as in :func:`project_points`.
 
     Raises:
-        ValueError: on wrong shapes, mismatched batch sizes, non-floating or non-finite inputs, or a
-            focal length ``f <= 0``.
+        ValueError: on wrong shapes, mismatched batch sizes, non-floating or non-finite inputs, a
+            focal length ``f <= 0`` or an ``eps`` that is not a finite number > 0.
 
     Shape:
         - camera_points: :math:`(B, N, 3)`; intrinsics: :math:`(B, 3)`
@@ -149,6 +150,7 @@ def projection_jacobian(camera_points: Tensor, intrinsics: Tensor, eps: float = 
     check_same_dtype_device(camera_points, "camera_points", intrinsics=intrinsics)
     check_all_finite(camera_points=camera_points, intrinsics=intrinsics)
     _check_focal(intrinsics)
+    eps = check_positive(eps, "eps")
     if camera_points.dtype in _HALF:
         return projection_jacobian(camera_points.float(), intrinsics.float(), eps).to(camera_points.dtype)
     x, y, z = camera_points.unbind(-1)

@@ -32,7 +32,7 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
     Args:
         path: output file; its folder is created.
         vertices: ``(N, 3)`` or ``(1, N, 3)`` vertices (mm).
-        faces: ``(F, 3)`` integer triangles indexing ``vertices``.
+        faces: ``(F, 3)`` integer triangles indexing ``vertices``, ``F >= 1``.
 
     Returns:
         The path written.
@@ -49,6 +49,8 @@ def save_mesh(path: str | Path, vertices: Tensor, faces: Tensor) -> Path:
     check_shape(vertices, ["N", 3], "vertices")
     check_finite(vertices, "vertices")  # load_mesh would refuse the file
     check_faces(faces, vertices.shape[0], "faces")
+    if faces.shape[0] == 0:  # load_mesh would refuse the file
+        raise ValueError(f"faces: expected at least one triangle, got shape {tuple(faces.shape)}")
     path = Path(path)
     suffix = path.suffix.lstrip(".").lower()
     if suffix not in _MESH_FORMATS:
@@ -261,8 +263,9 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         triangles = np.array(face_rows, dtype=np.int64).reshape(-1, 3)
     except (ValueError, OverflowError):
         return None  # not numbers: trimesh's reading and errors
-    if triangles.size and triangles.min() < 1:
-        return None
+    if triangles.size and triangles.min() < 1:  # trimesh would read index 0 as the last vertex
+        raise ValueError(f"{path}: a face refers to vertex index 0 or to one before the first vertex "
+                         "(OBJ indices start at 1; negative ones count back from the last vertex)")
     return points, triangles - 1
 
 

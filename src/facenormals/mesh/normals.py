@@ -48,7 +48,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_finite, check_floating, check_integer, check_real, check_shape
+from facenormals.core.check import check_faces, check_finite, check_floating, check_integer, check_positive, check_shape
 
 __all__ = ["VertexNormals", "vertex_normals"]
 
@@ -65,14 +65,6 @@ def _check_vertices(vertices: object, num_vertices: int | None = None) -> None:
     check_shape(vertices, ["B", "N" if num_vertices is None else num_vertices, 3], "vertices")
     check_floating(vertices, "vertices")
     check_finite(vertices, "vertices")  # a NaN vertex spreads NaN normals over its ring
-
-
-def _check_eps(eps: object) -> float:
-    """The norm clamp ``eps`` as a float, raising ``ValueError`` unless it is a finite number > 0."""
-    value = check_real(eps, "eps")
-    if value <= 0:
-        raise ValueError(f"eps: expected a finite number > 0, got {eps!r}")
-    return value
 
 
 def _normalise(x: Tensor, eps: float) -> Tensor:
@@ -154,7 +146,7 @@ def vertex_normals(vertices: Tensor, faces: Tensor, mode: str = "ring", eps: flo
     _check_vertices(vertices)
     check_faces(faces, vertices.shape[1])
     _check_mode(mode)
-    eps = _check_eps(eps)
+    eps = check_positive(eps, "eps")
     corners = faces.to(device=vertices.device, dtype=torch.long).t().reshape(-1)
     normals = _face_normals(vertices, corners, mode == "ring", eps)
     return _finish(_scatter_add(normals, corners, vertices.shape[1]), vertices.shape[0], eps)
@@ -195,7 +187,7 @@ class VertexNormals(nn.Module):
         num_vertices = check_integer(num_vertices, "num_vertices", minimum=0)
         check_faces(faces, num_vertices)
         self.mode = _check_mode(mode)
-        self.eps = _check_eps(eps)
+        self.eps = check_positive(eps, "eps")
         self.num_vertices = num_vertices
         self.num_faces = faces.shape[0]
         self.register_buffer("corners", faces.to(torch.long).t().reshape(-1), persistent=False)

@@ -22,8 +22,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_finite, check_floating, check_shape, check_tensor
-from facenormals.mesh.normals import _check_eps, _check_vertices
+from facenormals.core.check import check_faces, check_finite, check_floating, check_positive, check_shape, check_tensor
+from facenormals.mesh.normals import _check_vertices
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -135,7 +135,7 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
     else:
         edges = [_tangent_edges(t, faces) for t in tangents]
         d_e1, d_e2 = torch.stack([e[0] for e in edges]), torch.stack([e[1] for e in edges])
-    return _jvp(vertices, faces, d_e1, d_e2, _check_eps(eps))
+    return _jvp(vertices, faces, d_e1, d_e2, check_positive(eps, "eps"))
 
 
 class _SubsetJacobian:
@@ -191,7 +191,7 @@ class VertexNormalsJacobian(nn.Module):
         check_faces(faces, dims["N"])
         faces = faces.to(torch.long)
         d_e1, d_e2 = _tangent_edges(basis, faces)
-        self.eps = _check_eps(eps)
+        self.eps = check_positive(eps, "eps")
         self.num_vertices = dims["N"]
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("d_e1", d_e1.contiguous(), persistent=False)

@@ -26,7 +26,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_integer, check_nonnegative, check_shape
+from facenormals.core.check import check_finite, check_integer, check_nonnegative, check_positive, check_shape
 from facenormals.optim.normal_equations import normal_equations as normal_equations_of
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
@@ -163,9 +163,8 @@ def _check_options(
         damping = 0.0
     for name, value in (("ftol", ftol), ("xtol", xtol), ("gtol", gtol), ("damping", damping)):
         check_nonnegative(value, name)
-    if not (math.isfinite(min_damping) and min_damping > 0):
-        raise ValueError(f"min_damping: expected a finite number > 0, got {min_damping!r}")
-    if not max_damping > min_damping:
+    check_positive(min_damping, "min_damping")
+    if not check_positive(max_damping, "max_damping") > min_damping:
         raise ValueError(
             f"max_damping: expected a number > min_damping={min_damping!r}, got {max_damping!r}"
         )

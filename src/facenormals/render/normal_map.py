@@ -55,7 +55,11 @@ def render_normal_map(
     if normals is None:
         normals = vertex_normals(vertices, faces)
     check_shape(normals, ["B", "N", 3], "normals", dims)
-    check_same_dtype_device(vertices, "vertices", normals=normals)
+    check_shape(rotation, ["B", 3, 3], "rotation", dims)
+    check_shape(translation, ["B", 3], "translation", dims)
+    check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    check_same_dtype_device(vertices, "vertices", normals=normals, rotation=rotation, translation=translation,
+                            intrinsics=intrinsics)
     # NaN would silently read as background (its triangles are skipped, its normals zeroed)
     check_all_finite(vertices=vertices, normals=normals, rotation=rotation, translation=translation,
                      intrinsics=intrinsics)

@@ -120,7 +120,7 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
 
     Args:
         pixels: projected points ``(u, v)``.
-        depth: their camera-frame depths.
+        depth: their camera-frame depths, finite where the pixels are.
         zbuffer: a depth map (``inf`` on background), e.g. :func:`~facenormals.render.rasterize_depth`.
         tolerance: depth slack in mm, for the surface's curvature between pixel centres.
 
@@ -142,6 +142,8 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     for name, x in (("pixels", pixels), ("depth", depth), ("zbuffer", zbuffer)):
         check_floating(x, name)
     check_finite(zbuffer, "zbuffer", allow_inf=True)  # inf is background, NaN would hide every point
+    # a NaN depth would read as hidden, silently; a point that projects nowhere may carry anything
+    check_finite(depth.masked_fill(~torch.isfinite(pixels).all(-1), 0.0), "depth")
     tolerance = check_nonnegative(tolerance, "tolerance")  # NaN would hide every point
     height, width = zdims["H"], zdims["W"]
     if height < 1 or width < 1:
