@@ -124,10 +124,12 @@ def test_bad_input(model, head):
     nan_centre[..., 1] = float("nan")
     with pytest.raises(ValueError, match="intrinsics: expected finite values"):
         fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=nan_centre, initial_pose=(obs.angles, obs.translation))
-    with pytest.raises(ValueError, match="landmark_robust_scale: expected a number > 0"):
+    with pytest.raises(ValueError, match="landmark_robust_scale: expected a finite number > 0"):
         fit_head(obs.normal_maps, obs.landmarks, model, landmark_robust_scale=0.0)
-    with pytest.raises(ValueError, match="robust_scale: expected a number > 0"):
+    with pytest.raises(ValueError, match="robust_scale: expected a finite number > 0"):
         fit_head(obs.normal_maps, obs.landmarks, model, robust_scale=-1.0)
+    with pytest.raises(ValueError, match="robust_scale: expected a real number, got str"):
+        fit_head(obs.normal_maps, obs.landmarks, model, robust_scale="0.1")  # was a TypeError
     bad_focal = obs.intrinsics.clone()
     bad_focal[..., 0] = 0.0
     with pytest.raises(ValueError, match="intrinsics: expected focal lengths f > 0"):

@@ -5,11 +5,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from facenormals.core.check import check_positive
+
 
 def check_scale(name: str, value: float | None) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``value`` is ``None`` or a number > 0."""
-    if value is not None and not value > 0:
-        raise ValueError(f"{name}: expected a number > 0 or None, got {value!r}")
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is ``None`` (no reweighting) or a finite
+    number > 0."""
+    if value is not None:
+        check_positive(value, name)
 
 
 def huber_weights(rho: Tensor, scale: float) -> Tensor:
