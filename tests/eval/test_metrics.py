@@ -187,6 +187,19 @@ def test_depth_nearest_of_several_hits():
     np.testing.assert_allclose(z, [10.0, 0.0])
 
 
+def test_depth_of_an_edge_on_triangle_is_no_hit_and_no_warning():
+    """A triangle seen edge-on (det = 0) is skipped without numpy's 'invalid value' warning."""
+    import warnings
+
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [2.0, 0.0, 2.0], [0.0, 0.0, 5.0], [2.0, 0.0, 5.0],
+                         [0.0, 2.0, 5.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        z = intersect_lines_along_z(np.array([[0.5, 0.0, 0.0], [0.5, 0.5, 0.0]]), vertices, np.array([[0, 1, 2],
+                                                                                                      [3, 4, 5]]))
+    np.testing.assert_allclose(z, [5.0, 5.0])
+
+
 def test_depth_statistics_nan_and_empty():
     stats = depth_statistics(torch.tensor([1.0, -3.0, float("nan"), float("nan")]))
     assert stats.mean == 2.0 and stats.coverage == 0.5 and stats.count == 2

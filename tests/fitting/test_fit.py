@@ -231,6 +231,12 @@ def test_reported_energies_are_the_weighted_terms(model, head):
                       prior=0.4), robust_scale=None, landmark_robust_scale=None, vertex_spacing=None,
                       fit_intrinsics=False, initial_pose=(fit.angles, fit.translation), rounds=1, iterations_per_round=1)
     assert float(halved.energies["normals"]) < float(fit.energies["normals"])
+    # intrinsics that are not fitted are the result's own, not the caller's tensor
+    given = obs.intrinsics.clone()
+    fixed = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=given, fit_intrinsics=False, rounds=1,
+                     iterations_per_round=1)
+    fixed.intrinsics[..., 0] *= 2.0
+    assert torch.equal(given, obs.intrinsics)
 
 
 def test_vertex_spacing_options(model, head):

@@ -502,6 +502,8 @@ def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
     maps.landmarks[:] = float("nan")
     with pytest.raises(ValueError, match="too few"):
         reconstruct_views(crops, net, builtin_head_model(), maps=maps)
+    with pytest.raises(ValueError, match="intrinsics: not a fit option here.*give focal="):  # was a TypeError
+        reconstruct_views(crops, net, builtin_head_model(), maps=maps, intrinsics=torch.ones(2, 3))
 
 
 def test_the_same_photo_twice_is_reported(tmp_path):

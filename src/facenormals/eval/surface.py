@@ -269,8 +269,8 @@ def intersect_lines_along_z(
     with np.errstate(divide="ignore", invalid="ignore"):
         u = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
         v = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
-    eps = 1e-9
-    hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
+        eps = 1e-9
+        hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)  # inf + -inf where det = 0 (not ok)
     q, a, b, c, u, v = q[hit], a[hit], b[hit], c[hit], u[hit], v[hit]
     z = a[:, 2] + u * (b[:, 2] - a[:, 2]) + v * (c[:, 2] - a[:, 2])
     if len(q):

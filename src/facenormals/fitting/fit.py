@@ -375,7 +375,7 @@ def fit_head(
         angles=p["angles"],
         rotation=euler_to_rotation_matrix(p["angles"].reshape(-1, 3)).reshape(B, V, 3, 3),
         translation=p["translation"],
-        intrinsics=p["intrinsics"].expand(B, V, 3),
+        intrinsics=p["intrinsics"].expand(B, V, 3).clone(),  # not fitted, it is the caller's tensor
         energies=energies,
         iterations=iterations,
         status=result.status,

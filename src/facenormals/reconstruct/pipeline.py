@@ -290,12 +290,17 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         maps: ``predict_maps(net, crops, mirror=mirror)`` if already computed (it is then used, and
             changed as ``drop_hidden`` says, instead of predicting again).
         **fit_options: passed to :func:`~facenormals.fitting.fit_head` (``weights`` defaults to
-            :func:`network_fit_weights` of ``net``).
+            :func:`network_fit_weights` of ``net``); not ``intrinsics``, which come from ``focal``
+            and the crop size.
 
     Raises:
         NoFaceError: naming the view when the network finds fewer than 4 of the model's landmarks in
             it (too few to pre-align: no face, or a crop that misses it).
+        ValueError: when ``fit_options`` holds ``intrinsics``.
     """
+    if "intrinsics" in fit_options:  # fit_head would get them twice, a TypeError deep inside
+        raise ValueError("intrinsics: not a fit option here; the intrinsics are (focal, (S - 1) / 2, (S - 1) / 2) "
+                         "in crop pixels: give focal= (the fit refines it per view)")
     log = log or (lambda message: None)
     fit_options.setdefault("weights", network_fit_weights(net))
     V, _, S, _ = crops.shape
