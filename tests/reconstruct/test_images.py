@@ -101,3 +101,20 @@ def test_corrupt_jpeg_data_is_an_error_not_garbage_pixels(tmp_path):
     assert cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None  # OpenCV accepts it
     with pytest.raises(ImageReadError, match="bad.jpg: corrupt JPEG data"):
         read_image(bad)
+
+
+def test_a_large_jpeg_is_read_past_pillows_decompression_bomb_limit(tmp_path, monkeypatch):
+    """Regression: Pillow's integrity check refused JPEGs over 179 M pixels with a traceback (and
+    warned over 89 M); a limit of 1,000 pixels stands in for those here."""
+    import warnings
+
+    import cv2
+    from PIL import Image
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    path = tmp_path / "large.jpg"
+    cv2.imwrite(str(path), np.full((64, 64, 3), 128, np.uint8))  # 4 times the "bomb" limit of 2,000
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_image(path).shape == (64, 64, 3)
+    assert Image.MAX_IMAGE_PIXELS == 1000  # the limit is restored

@@ -56,14 +56,22 @@ def _check_jpeg_stream(path: Path, data: np.ndarray) -> None:
     "Corrupt JPEG data" to stderr) and returns garbage pixels without an error; Pillow's decoder
     refuses the same stream, so it checks the file once more. It decodes at an eighth of the size
     (libjpeg's DCT scaling: every coefficient is still entropy-decoded, so the same streams are
-    refused, in a quarter of the time)."""
+    refused, in a quarter of the time). Pillow's decompression-bomb limit (89 M pixels warns, 179 M
+    fails) is lifted for the check: OpenCV has already decoded the whole image."""
     import io
+    import warnings
 
     from PIL import Image
 
+    limit = Image.MAX_IMAGE_PIXELS
     try:
-        with Image.open(io.BytesIO(data.tobytes())) as image:
-            image.draft(image.mode, (max(1, image.width // 8), max(1, image.height // 8)))
-            image.load()
+        Image.MAX_IMAGE_PIXELS = None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data.tobytes())) as image:
+                image.draft(image.mode, (max(1, image.width // 8), max(1, image.height // 8)))
+                image.load()
     except (OSError, SyntaxError, ValueError) as error:
         raise ImageReadError(f"{path}: corrupt JPEG data ({error})") from None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
