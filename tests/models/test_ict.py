@@ -397,6 +397,22 @@ def test_an_inconsistent_archive_names_the_file_and_its_face_count_is_used(ict_n
     for bad in (True, 2.5, 0):
         with pytest.raises(ValueError, match="num_shape: expected an integer in 1..2"):
             load_ict_npz(tmp_path / "count.npz", num_shape=bad)
+    # arrays of the wrong kind or rank: errors naming the file, not tracebacks from inside
+    for change, match in (
+            ({"face_vertex_count": np.array([1, 2])}, r"array 'face_vertex_count' has dtype int64 and shape \(2,\), "
+                                                      "expected a number"),
+            ({"mean": arrays["mean"].astype(str)}, "array 'mean' has dtype <U"),
+            ({"identity_basis": np.array(1.0, np.float32)}, r"array 'identity_basis' has dtype float32 and shape "
+                                                            r"\(\), expected 3-D numbers"),
+            ({"identity_basis": arrays["identity_basis"][:0]}, "the archive has no identity modes"),
+            ({"landmarks_ibug68": arrays["landmarks_ibug68"] + 0.7}, "array 'landmarks_ibug68' holds indices that "
+                                                                     "are not whole numbers"),
+            ({"faces": arrays["faces"] + 0.5}, "array 'faces' holds indices that are not whole numbers")):
+        np.savez(tmp_path / "bad.npz", **{**arrays, **change})
+        with pytest.raises(ModelFileError, match="bad.npz: " + match):
+            load_ict_npz(tmp_path / "bad.npz")
+    np.savez(tmp_path / "whole.npz", **{**arrays, "faces": arrays["faces"].astype(np.float64)})
+    assert torch.equal(load_ict_npz(tmp_path / "whole.npz").faces, load_ict_npz(tmp_path / "count.npz").faces)
 
 
 def test_a_download_cut_short_without_a_length_is_not_kept(ict_raw, tmp_path, monkeypatch):

@@ -217,7 +217,8 @@ def test_inconsistent_landmark_tables_and_units_are_refused(tmp_path):
         arrays = {k: data[k] for k in data.files}
     for change, match in (({"landmark_names": np.array(["a", "b", "c"])}, "3 landmark names .* for 2 landmark indices"),
                           ({"landmark_names": np.array(["a", "a"])}, r"2 landmark names \(distinct: 1\)"),
-                          ({"units": np.array("cm")}, "units 'cm', expected 'mm'")):
+                          ({"units": np.array("cm")}, "units 'cm', expected 'mm'"),
+                          ({"version": np.array([1, 2])}, r"format version \[1, 2\], expected an integer")):
         np.savez(tmp_path / "bad.npz", **{**arrays, **change})
         with pytest.raises(ModelFileError, match=f"bad.npz: {match}"):
             MorphableModel.load(tmp_path / "bad.npz")

@@ -90,7 +90,7 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
             units = str(data["units"]) if "units" in data.files else "cm"
             arrays = {k: data[k] for k in ICT_KEYS}
             if "face_vertex_count" in data.files:
-                arrays["face_vertex_count"] = int(data["face_vertex_count"])
+                arrays["face_vertex_count"] = data["face_vertex_count"]
     except ModelFileError:
         raise
     except NPZ_READ_ERRORS as error:
@@ -98,6 +98,7 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
     scale = {"cm": 10.0, "mm": 1.0, "m": 1000.0}.get(units)
     if scale is None:
         raise ModelFileError(f"{path}: unknown units {units!r}, expected 'cm', 'mm' or 'm'")
+    _check_ict_arrays(arrays, path)
     available = arrays["identity_basis"].shape[0]
     if num_shape is None:
         num_shape = available
@@ -108,6 +109,26 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
         return _ict_model(arrays, scale, dtype, str(path))
     except (ValueError, IndexError) as error:  # arrays that do not fit together
         raise ModelFileError(f"{path}: inconsistent ICT-FaceKit archive ({type(error).__name__}: {error})") from None
+
+
+def _check_ict_arrays(arrays: dict, path: Path) -> None:
+    """Raise ``ModelFileError`` naming ``path`` unless the archive's arrays have the kinds and ranks
+    :func:`_ict_model` needs: numbers where numbers belong, whole numbers for indices (a fractional
+    landmark index would be truncated silently), at least one identity mode."""
+    for key, rank in (("mean", 2), ("identity_basis", 3), ("expression_basis", 3), ("faces", 2),
+                      ("landmarks_ibug68", 1), ("face_vertex_count", 0)):
+        if key not in arrays:
+            continue
+        value = np.asarray(arrays[key])
+        if value.dtype.kind not in "iuf" or value.ndim != rank:
+            raise ModelFileError(f"{path}: array {key!r} has dtype {value.dtype} and shape {value.shape}, expected "
+                                 f"{'a number' if rank == 0 else f'{rank}-D numbers'}")
+        if key in ("faces", "landmarks_ibug68", "face_vertex_count") and value.dtype.kind == "f":
+            if not np.array_equal(value, np.round(value)):  # NaN included
+                raise ModelFileError(f"{path}: array {key!r} holds indices that are not whole numbers")
+    if arrays["identity_basis"].shape[0] == 0:
+        raise ModelFileError(f"{path}: the archive has no identity modes (identity_basis of shape "
+                             f"{arrays['identity_basis'].shape})")
 
 
 def _ict_model(arrays: dict, scale: float, dtype: torch.dtype, file: str) -> MorphableModel:

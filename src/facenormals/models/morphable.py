@@ -389,8 +389,11 @@ class MorphableModel(nn.Module):
                     raise ModelFileError(f"{path}: not a facenormals model file, missing keys {missing}")
                 if str(data["format"]) != FORMAT_NAME:
                     raise ModelFileError(f"{path}: format is {str(data['format'])!r}, expected {FORMAT_NAME!r}")
-                if int(data["version"]) > FORMAT_VERSION:
-                    raise ModelFileError(f"{path}: format version {int(data['version'])} is newer than supported")
+                version = data["version"]
+                if version.ndim != 0 or version.dtype.kind not in "iu":
+                    raise ModelFileError(f"{path}: format version {version.tolist()!r}, expected an integer")
+                if int(version) > FORMAT_VERSION:
+                    raise ModelFileError(f"{path}: format version {int(version)} is newer than supported")
                 arrays = {k: data[k] for k in data.files}
         except ModelFileError:
             raise
