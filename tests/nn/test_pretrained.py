@@ -1,5 +1,7 @@
 """The weights shipped in the package: present, small, loadable, and a working network."""
 
+import re
+
 import pytest
 import torch
 
@@ -70,6 +72,13 @@ def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
             load_weights(path)
     torch.save({**good, "metadata": {"landmark_threshold": [0.5] * 24}}, path)
     assert load_weights(path).metadata["landmark_threshold"] == [0.5] * 24
+    # NaN weights made every map NaN: the error named the maps, far from the file
+    state = {k: v.clone() for k, v in net.state_dict().items()}
+    name = next(k for k, v in state.items() if v.is_floating_point())
+    state[name].view(-1)[0] = float("inf")
+    torch.save({**good, "state_dict": state}, path)
+    with pytest.raises(ValueError, match=f"w.pt: the weights hold NaN or infinite values \\({re.escape(name)}: 1 of"):
+        load_weights(path)
 
 
 def test_update_weight_metadata_keeps_the_weights(tmp_path):

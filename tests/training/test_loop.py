@@ -189,11 +189,38 @@ def test_a_failed_log_rewrite_keeps_the_log(tmp_path, monkeypatch):
 
     monkeypatch.setattr(csv.DictWriter, "writerows", fail)
     with pytest.raises(OSError, match="disk full"):
-        _truncate_csv(log, 5)
+        _truncate_csv(log, 5, ["step", "loss"])
     assert len(log.read_text().splitlines()) == 11  # untouched
     monkeypatch.undo()
-    _truncate_csv(log, 5)
+    _truncate_csv(log, 5, ["step", "loss"])
     assert [int(r["step"]) for r in csv.DictReader(log.open())] == [1, 2, 3, 4, 5]
+
+
+def test_a_foreign_or_damaged_log_is_named_and_an_old_one_gets_the_new_columns(tmp_path):
+    """Regression: rows were appended under a foreign header, and a damaged row or a log without a
+    step column failed with a bare KeyError / int() message."""
+    from facenormals.training.loop import _LOG_FIELDS
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "log.csv").write_text("precious\n")
+    with pytest.raises(ValueError, match=r"run/log.csv: not a facenormals training log \(columns \['precious'\]"):
+        train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
+    assert (run / "log.csv").read_text() == "precious\n"
+    (run / "log.csv").write_text("step,loss\n1,0.5\ngarbage,line\n")
+    with pytest.raises(ValueError, match="run/log.csv: line 3: expected a training log row with an integer step, "
+                                         "got 'garbage'"):
+        train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
+    (run / "log.csv").unlink()
+    train(_config(tmp_path, steps=1, log_every=1), TinyHeads(4), progress=False)  # a checkpoint at step 1
+    (run / "log.csv").write_text("step,loss\n1,0.5\n")  # as before the other columns existed: kept, widened
+    train(_config(tmp_path, steps=2, log_every=1), TinyHeads(4), progress=False)
+    with (run / "log.csv").open() as handle:
+        reader = csv.DictReader(handle)
+        rows = list(reader)
+    assert reader.fieldnames == _LOG_FIELDS
+    assert [r["step"] for r in rows] == ["1", "2"] and rows[0]["loss"] == "0.5" and rows[0]["lr"] == ""
+    assert float(rows[1]["lr"]) > 0
 
 
 def test_export_refuses_to_overwrite_its_checkpoint(tmp_path):
@@ -274,7 +301,7 @@ def test_a_rerun_without_a_checkpoint_drops_the_dead_run_s_log_rows(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     (run / "log.csv").write_text("step,loss\n1,0.5\n2,0.4\n")  # a run that died before its first checkpoint
-    (run / "eval.csv").write_text("step,normal_mean\n2,30.0\n")
+    (run / "eval.csv").write_text("step,normal_mean_deg\n2,30.0\n")
     train(_config(tmp_path, steps=4, log_every=2, eval_every=100), TinyHeads(8), holdout=TinyHeads(4, seed=1),
           progress=False)
     assert [int(r["step"]) for r in csv.DictReader((run / "log.csv").open())] == [2, 4]

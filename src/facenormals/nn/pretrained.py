@@ -136,7 +136,8 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError: if it is not a facenormals weight file or does not match its architecture.
+        ValueError: if it is not a facenormals weight file, does not match its architecture or holds
+            NaN or infinite weights.
 
     Example:
         >>> net = load_weights()
@@ -152,6 +153,10 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: the weight file's architecture {arch} is not a valid network ({error})") from None
     state = {k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+    for key, value in state.items():  # else every map would be NaN, an error far from its cause
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise ValueError(f"{path}: the weights hold NaN or infinite values ({key}: "
+                             f"{int((~torch.isfinite(value)).sum())} of {value.numel()})")
     try:
         net.load_state_dict(state)
     except RuntimeError as error:

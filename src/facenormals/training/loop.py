@@ -107,20 +107,39 @@ def _read_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(handle))
 
 
-def _truncate_csv(path: Path, step: int) -> None:
-    """Drop the rows logged after ``step`` (a run that died after its last checkpoint repeats them)."""
+def _logged_step(path: Path, row: dict, line: int) -> int:
+    try:
+        return int(row["step"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{path}: line {line}: expected a training log row with an integer step, got "
+                         f"{row.get('step')!r}; move the file away or choose another --out") from None
+
+
+def _truncate_csv(path: Path, step: int, fields: list[str]) -> None:
+    """Drop the rows logged after ``step`` (a run that died after its last checkpoint repeats them).
+
+    A log written before a column was added gets the current header (its rows leave the new columns
+    empty), so that rows appended now line up; a file that is no log of ours is an error naming it,
+    rather than rows appended under a foreign header."""
     rows = _read_rows(path)
-    kept = [r for r in rows if int(r["step"]) <= step]
-    if len(kept) != len(rows):  # rewritten beside and renamed over it: an error leaves the old log
+    if not path.exists():
+        return
+    with path.open(newline="") as handle:
+        header = next(csv.reader(handle), [])
+    if "step" not in header or not set(header) <= set(fields):
+        raise ValueError(f"{path}: not a facenormals training log (columns {header}, expected {fields}); move "
+                         "the file away or choose another --out")
+    kept = [r for line, r in enumerate(rows, start=2) if _logged_step(path, r, line) <= step]
+    if len(kept) != len(rows) or header != fields:  # rewritten beside and renamed over it: an error leaves the old log
         with atomic_write(path) as part, part.open("w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer = csv.DictWriter(handle, fieldnames=fields, restval="")
             writer.writeheader()
             writer.writerows(kept)
 
 
 def _last_logged_step(path: Path) -> int | None:
     rows = _read_rows(path)
-    return int(rows[-1]["step"]) if rows else None
+    return _logged_step(path, rows[-1], len(rows) + 1) if rows else None
 
 
 #: Settings that shape the optimisation: a resume that changes one says so (``steps``, ``data``,
@@ -304,8 +323,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                 print(f"note: --init {config.init} is ignored: {last} exists and the run resumes from it "
                       "(another --out starts a new run from those weights)")
     if ctx.is_main:  # rows logged after the checkpoint (all of them when there is none) are repeated now
-        for name in ("log.csv", "eval.csv"):
-            _truncate_csv(out / name, step)
+        for name, fields in (("log.csv", _LOG_FIELDS), ("eval.csv", _EVAL_FIELDS)):
+            _truncate_csv(out / name, step, fields)
         if config.batch_size * ctx.world_size > len(dataset):
             print(f"note: a batch of {config.batch_size} x {ctx.world_size} process(es) is larger than the "
                   f"{len(dataset)} training samples: every batch repeats samples")
