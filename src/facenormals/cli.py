@@ -270,7 +270,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="facenormals", description="Reconstruct 3D heads from photos with predicted normals and landmarks.",
-        epilog="Errors print one line and exit 1 (set FACENORMALS_TRACEBACK=1 for the traceback); Ctrl-C exits 130.")
+        epilog="Errors print one line and exit 1 (set FACENORMALS_TRACEBACK=1 for the traceback); a mistyped "
+               "command line prints its usage and exits 2; Ctrl-C exits 130.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="recover a random synthetic head from its normal map and landmarks")
     demo.add_argument("--model", default="auto", help="ict, builtin, auto (default) or a model .npz path")

@@ -284,6 +284,12 @@ def test_fetch_force_rebuilds(ict_raw, tmp_path):
     assert fetch_ict(ict_raw, cache=tmp_path, progress=None) == archive and archive.read_bytes() == b"stale"
     fetch_ict(ict_raw, cache=tmp_path, progress=None, force=True)
     assert load_ict_npz(archive).num_vertices == 11248
+    # a cached archive: a given source is not converted, and says so; a missing one is an error
+    lines = []
+    assert fetch_ict(ict_raw, cache=tmp_path, progress=lines.append) == archive
+    assert lines == [f"ICT-FaceKit is already in {archive}; {ict_raw} was not converted (--force converts it)"]
+    with pytest.raises(ModelFileError, match="nowhere: no such file or folder"):
+        fetch_ict(tmp_path / "nowhere", cache=tmp_path, progress=None)
 
 
 def test_fetch_without_network_names_from(tmp_path, monkeypatch):

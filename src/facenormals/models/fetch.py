@@ -164,13 +164,17 @@ def fetch_ict(
     Raises:
         FetchError: if the download fails (no network, HTTP error, ...); the message names ``--from``.
             It is both a :class:`ModelFileError` and an :class:`OSError`.
-        ModelFileError: if the source or the downloaded zip is not a readable ICT-FaceKit copy.
+        ModelFileError: if the source does not exist (checked even when the archive is cached), or it
+            or the downloaded zip is not a readable ICT-FaceKit copy.
     """
     say = progress if progress is not None else (lambda _message: None)
     folder = Path(cache if cache is not None else cache_dir()) / "ict"
     archive = folder / ICT_ARCHIVE
+    if source is not None and not Path(source).exists():
+        raise ModelFileError(f"{source}: no such file or folder (--from expects a local ICT-FaceKit copy)")
     if archive.is_file() and not force:
-        say(f"ICT-FaceKit is already in {archive}")
+        say(f"ICT-FaceKit is already in {archive}" + ("" if source is None else
+                                                      f"; {source} was not converted (--force converts it)"))
         return archive
     if source is not None:
         say(f"converting ICT-FaceKit from {source}")
