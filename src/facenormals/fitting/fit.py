@@ -312,7 +312,8 @@ def fit_head(
                     "at least 4 are needed to pre-align it"
                 )
         pose = prealign_pose(landmarks.reshape(B * V, -1, 2), model.mean[model.landmark_indices],
-                             intrinsics.reshape(B * V, 3), flat_mask, robust_scale=landmark_robust_scale)
+                             intrinsics.reshape(B * V, 3), flat_mask, robust_scale=landmark_robust_scale,
+                             model_normals=model.landmark_normals())
         angles, translation = pose.angles.reshape(B, V, 3), pose.translation.reshape(B, V, 3)
         pre_rms = pose.rms_px.reshape(B, V)
     else:

@@ -151,7 +151,7 @@ def drop_hidden_landmarks(landmarks: Tensor, found: Tensor, model: MorphableMode
     if not bool(usable.any()):
         return found.to(out_device), None
     pose = prealign_pose(landmarks[usable], model.mean[model.landmark_indices], intrinsics[usable], found[usable],
-                         robust_scale=robust_scale)
+                         robust_scale=robust_scale, model_normals=model.landmark_normals())
     hidden = hidden_landmarks(model, pose.rotation, pose.translation, intrinsics[usable], image_size,
                               tolerance=tolerance)
     kept = found[usable] & ~hidden

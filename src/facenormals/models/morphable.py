@@ -233,6 +233,26 @@ class MorphableModel(nn.Module):
             cache[slot] = (key, matrix.to(dtype).contiguous())
         return cache[slot][1]
 
+    def landmark_normals(self) -> Tensor:
+        """``(L, 3)`` outward unit vertex normals of the mean shape at the landmarks (model frame), e.g.
+        for :func:`~facenormals.fitting.prealign_pose`'s ``model_normals``; computed once and reused
+        until a buffer changes.
+
+        Example:
+            >>> from facenormals.models import builtin_head_model
+            >>> model = builtin_head_model()
+            >>> float(model.landmark_normals()[model.landmark_names.index("nose_tip"), 2]) < -0.9  # -z: forward
+            True
+        """
+        from facenormals.mesh.normals import vertex_normals
+
+        key = tuple((id(p), p._version, p.dtype, p.device) for p in (self.mean, self.faces, self.landmark_indices))
+        cached = self.__dict__.get("_landmark_normals_cache")
+        if cached is None or cached[0] != key:
+            normals = vertex_normals(self.mean[None], self.faces)[0, self.landmark_indices]
+            self.__dict__["_landmark_normals_cache"] = cached = (key, normals)
+        return cached[1]
+
     def landmark_vertices(self, vertices: Tensor, names: Sequence[str] | None = None) -> Tensor:
         """Pick the landmark vertices ``(B, L, 3)`` out of ``vertices`` ``(B, N, 3)`` (all, or ``names``)."""
         check_shape(vertices, ["B", self.num_vertices, 3], "vertices")
