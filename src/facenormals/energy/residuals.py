@@ -200,8 +200,12 @@ def landmark_residuals(
     # a NaN residual would poison the whole solve; masked-out landmarks may carry anything
     used = (lambda x: x) if mask is None else (lambda x: x.masked_fill(~mask[..., None], 0.0))
     check_all_finite(pixels=used(pixels.detach()), targets=used(targets.detach()))
-    scale = math.sqrt(check_nonnegative(weight, "weight"))
+    return _landmark_differences(pixels, targets, mask, math.sqrt(check_nonnegative(weight, "weight")))
 
+
+def _landmark_differences(pixels: Tensor, targets: Tensor, mask: Tensor | None, scale: float = 1.0) -> Tensor:
+    """:func:`landmark_residuals` without its input checks, for solver loops whose inputs were
+    checked once (a pre-alignment's or a fit's LM iterations), with ``scale`` = √λ."""
     if mask is None:
         residuals = pixels - targets
     else:

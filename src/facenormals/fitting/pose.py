@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape, check_tensor
-from facenormals.energy import landmark_residuals
+from facenormals.energy.residuals import _landmark_differences
 from facenormals.fitting.robust import cauchy_weights, check_scale
 from facenormals.geometry import (
     euler_rotation_derivatives,
@@ -157,7 +157,7 @@ def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tenso
 def _pose_residuals(x: Tensor, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> Tensor:
     """``(B, L, 2)`` landmark residuals of the poses ``x`` (zero where masked)."""
     uv, _ = project_points(points, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], intrinsics)
-    return landmark_residuals(uv, targets, mask)
+    return _landmark_differences(uv, targets, mask)  # the inputs were checked by prealign_pose
 
 
 #: A pose whose landmarks' normals make a mean cosine above this with the rays to them faces away

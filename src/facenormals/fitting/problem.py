@@ -37,8 +37,8 @@ from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
 from facenormals.core.check import check_all_finite, check_floating, check_shape
-from facenormals.energy import landmark_residuals, prior_residuals
-from facenormals.energy.residuals import _foreground_at, _support_foreground
+from facenormals.energy import prior_residuals
+from facenormals.energy.residuals import _foreground_at, _landmark_differences, _support_foreground
 from facenormals.fitting.rings import RingRows, Rings
 from facenormals.fitting.robust import cauchy_weights, check_scale, huber_weights
 from facenormals.geometry import (
@@ -437,8 +437,9 @@ class HeadFitProblem:
         n_cam = g.n_model @ g.R.transpose(1, 2)
         r_n = torch.where(g.valid[..., None], g.sampled - n_cam, 0.0) * self._row_weights(index)[..., None]
         views = count * self.V  # explicit sizes: a model may have no landmarks (L = 0)
-        r_z = landmark_residuals(g.lm_uv, self._pick(self.landmarks, index).reshape(views, self.L, 2),
-                                 self._pick(self.landmark_mask, index).reshape(views, self.L), weight=self.weights.landmarks)
+        r_z = _landmark_differences(g.lm_uv, self._pick(self.landmarks, index).reshape(views, self.L, 2),
+                                    self._pick(self.landmark_mask, index).reshape(views, self.L),
+                                    math.sqrt(self.weights.landmarks))  # inputs checked by the constructor
         r_z = r_z * self._pick(self.landmark_weights, index).reshape(views, self.L, 1).sqrt()
         priors = self._prior_rows(g.p, index)
         if flat:
