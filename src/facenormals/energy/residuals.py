@@ -37,6 +37,13 @@ def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int], count: str
         raise ValueError(f"{name}: expected device {device}, got {mask.device}")
 
 
+def _counted(x: Tensor, mask: Tensor | None) -> Tensor:
+    """``x`` (detached) with the rows of points that do not count (``mask`` False) zeroed, for the
+    finiteness checks: such points may carry anything."""
+    x = x.detach()
+    return x if mask is None else x.masked_fill(~mask[..., None], 0.0)
+
+
 def _support_foreground(normal_map: Tensor) -> Tensor:
     """``(B, H W)``: whether the bilinear support of a point whose floor is pixel ``(v0, u0)`` (entry
     ``v0 W + u0``), i.e. pixels ``v0 .. v0 + 1`` x ``u0 .. u0 + 1`` clamped to the image, is all
@@ -136,8 +143,7 @@ def normal_residuals(
     _check_mask(visible, "visible", dims, "N", normal_map.device)
     # a NaN would read as background, or a NaN pixel as outside, and the vertices drop out silently;
     # vertices marked invisible may carry anything
-    used = (lambda x: x) if visible is None else (lambda x: x.masked_fill(~visible[..., None], 0.0))
-    check_all_finite(normal_map=normal_map, pixels=used(pixels.detach()), normals=used(normals.detach()))
+    check_all_finite(normal_map=normal_map, pixels=_counted(pixels, visible), normals=_counted(normals, visible))
     scale = math.sqrt(check_nonnegative(weight, "weight"))
 
     sampled, inside = sample_bicubic(normal_map, pixels)
@@ -198,8 +204,7 @@ def landmark_residuals(
     check_same_dtype_device(pixels, "pixels", targets=targets)
     _check_mask(mask, "mask", dims, "L", pixels.device)
     # a NaN residual would poison the whole solve; masked-out landmarks may carry anything
-    used = (lambda x: x) if mask is None else (lambda x: x.masked_fill(~mask[..., None], 0.0))
-    check_all_finite(pixels=used(pixels.detach()), targets=used(targets.detach()))
+    check_all_finite(pixels=_counted(pixels, mask), targets=_counted(targets, mask))
     return _landmark_differences(pixels, targets, mask, math.sqrt(check_nonnegative(weight, "weight")))
 
 

@@ -23,6 +23,7 @@ from facenormals.geometry import (
     project_points,
     projection_jacobian,
     rotation_matrix_to_euler,
+    transform_points,
 )
 from facenormals.optim import LMStatus, levenberg_marquardt
 
@@ -173,7 +174,7 @@ def _facing_camera(x: Tensor, points: Tensor, normals: Tensor | None, mask: Tens
     if normals is None:
         return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
     R = euler_to_rotation_matrix(x[:, :3])
-    camera = torch.matmul(points + x[:, None, 3:], R.transpose(1, 2))
+    camera = transform_points(points, R, x[:, 3:])
     cosine = (torch.matmul(normals, R.transpose(1, 2)) * camera).sum(-1) / camera.norm(dim=-1).clamp_min(1e-12)
     mean = torch.where(mask, cosine, torch.zeros_like(cosine)).sum(1) / mask.sum(1).clamp_min(1)
     return mean <= FACING_AWAY_COSINE
@@ -227,6 +228,16 @@ def _robust_solve(x: Tensor, status: Tensor, points: Tensor, targets: Tensor, ma
     cost = torch.where(torch.isfinite(cost) & (status != LMStatus.FAILED), cost, torch.finfo(cost.dtype).max)
     pick = _best_candidates(batch, owner, cost, _facing_camera(x, P, None if normals is None else normals[owner], m))
     return x[pick], status[pick]  # ties: the plain solution (listed first)
+
+
+def _per_view(points: Tensor, name: str, dims: dict[str, int]) -> Tensor:
+    """``points`` of shape ``(L, 3)`` (shared by the views) or ``(B, L, 3)`` as ``(B, L, 3)``."""
+    check_tensor(points, name)
+    if points.dim() == 2:
+        check_shape(points, [dims["L"], 3], name)
+        points = points.expand(dims["B"], -1, -1)
+    check_shape(points, ["B", "L", 3], name, dims)
+    return points
 
 
 def prealign_pose(
@@ -300,22 +311,14 @@ def prealign_pose(
     check_floating(landmarks, "landmarks")
     if dims["B"] < 1:
         raise ValueError(f"landmarks: expected at least one view, got shape {tuple(landmarks.shape)}")
-    check_tensor(model_points, "model_points")
-    if model_points.dim() == 2:
-        check_shape(model_points, [dims["L"], 3], "model_points")
-        model_points = model_points.expand(dims["B"], -1, -1)
-    check_shape(model_points, ["B", "L", 3], "model_points", dims)
+    model_points = _per_view(model_points, "model_points", dims)
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_finite(intrinsics, "intrinsics")
     if not bool((intrinsics[:, 0] > 0).all()):
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")
     check_finite(model_points, "model_points")
     if model_normals is not None:
-        check_tensor(model_normals, "model_normals")
-        if model_normals.dim() == 2:
-            check_shape(model_normals, [dims["L"], 3], "model_normals")
-            model_normals = model_normals.expand(dims["B"], -1, -1)
-        check_shape(model_normals, ["B", "L", 3], "model_normals", dims)
+        model_normals = _per_view(model_normals, "model_normals", dims)
         check_floating(model_normals, "model_normals")
         check_finite(model_normals, "model_normals")
     if mask is None:

@@ -8,7 +8,7 @@ import warnings
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -225,13 +225,8 @@ class MorphableModel(nn.Module):
         """
         parts = [self.shape_basis] + ([self.expression_basis] if with_expression else [])
         dtype = dtype or self.shape_basis.dtype
-        key = tuple((id(p), p._version, p.dtype, p.device) for p in parts)
-        cache = self.__dict__.setdefault("_basis_matrix_cache", {})
-        slot = (with_expression, dtype)
-        if cache.get(slot, (None,))[0] != key:
-            matrix = torch.cat([p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1)
-            cache[slot] = (key, matrix.to(dtype).contiguous())
-        return cache[slot][1]
+        return self._derived(("basis_matrix", with_expression, dtype), parts, lambda: torch.cat(
+            [p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1).to(dtype).contiguous())
 
     def landmark_normals(self) -> Tensor:
         """``(L, 3)`` outward unit vertex normals of the mean shape at the landmarks (model frame), e.g.
@@ -246,12 +241,16 @@ class MorphableModel(nn.Module):
         """
         from facenormals.mesh.normals import vertex_normals
 
-        key = tuple((id(p), p._version, p.dtype, p.device) for p in (self.mean, self.faces, self.landmark_indices))
-        cached = self.__dict__.get("_landmark_normals_cache")
-        if cached is None or cached[0] != key:
-            normals = vertex_normals(self.mean[None], self.faces)[0, self.landmark_indices]
-            self.__dict__["_landmark_normals_cache"] = cached = (key, normals)
-        return cached[1]
+        return self._derived("landmark_normals", (self.mean, self.faces, self.landmark_indices),
+                             lambda: vertex_normals(self.mean[None], self.faces)[0, self.landmark_indices])
+
+    def _derived(self, slot: object, sources: Sequence[Tensor], build: Callable[[], Tensor]) -> Tensor:
+        """``build()``, kept under ``slot`` until one of its ``sources`` changes (``.to()``, in-place edits)."""
+        key = tuple((id(p), p._version, p.dtype, p.device) for p in sources)
+        cache = self.__dict__.setdefault("_derived_cache", {})
+        if cache.get(slot, (None,))[0] != key:
+            cache[slot] = (key, build())
+        return cache[slot][1]
 
     def landmark_vertices(self, vertices: Tensor, names: Sequence[str] | None = None) -> Tensor:
         """Pick the landmark vertices ``(B, L, 3)`` out of ``vertices`` ``(B, N, 3)`` (all, or ``names``)."""
