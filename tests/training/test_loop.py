@@ -211,8 +211,9 @@ def test_a_foreign_or_damaged_log_is_named_and_an_old_one_gets_the_new_columns(t
     with pytest.raises(ValueError, match="run/log.csv: line 3: expected a training log row with an integer step, "
                                          "got 'garbage'"):
         train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
-    (run / "log.csv").unlink()
+    (run / "log.csv").write_text("")  # a run killed before its first row was flushed: a log like none
     train(_config(tmp_path, steps=1, log_every=1), TinyHeads(4), progress=False)  # a checkpoint at step 1
+    assert (run / "log.csv").read_text().splitlines()[0] == ",".join(_LOG_FIELDS)
     (run / "log.csv").write_text("step,loss\n1,0.5\n")  # as before the other columns existed: kept, widened
     train(_config(tmp_path, steps=2, log_every=1), TinyHeads(4), progress=False)
     with (run / "log.csv").open() as handle:

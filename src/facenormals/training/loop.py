@@ -91,7 +91,7 @@ def _open_dataset(root: str, config: TrainConfig, with_maps: bool) -> Dataset:
 
 
 def _append_csv(path: Path, fields: list[str], row: dict) -> None:
-    new = not path.exists()
+    new = not path.exists() or path.stat().st_size == 0  # a run killed before its first row was flushed
     with path.open("a", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=fields)
         if new:
@@ -121,11 +121,13 @@ def _truncate_csv(path: Path, step: int, fields: list[str]) -> None:
     A log written before a column was added gets the current header (its rows leave the new columns
     empty), so that rows appended now line up; a file that is no log of ours is an error naming it,
     rather than rows appended under a foreign header."""
-    rows = _read_rows(path)
     if not path.exists():
         return
     with path.open(newline="") as handle:
-        header = next(csv.reader(handle), [])
+        reader = csv.DictReader(handle)
+        rows, header = list(reader), reader.fieldnames
+    if header is None:  # empty: a run killed before its first row was flushed
+        return
     if "step" not in header or not set(header) <= set(fields):
         raise ValueError(f"{path}: not a facenormals training log (columns {header}, expected {fields}); move "
                          "the file away or choose another --out")
