@@ -79,6 +79,12 @@ def test_load_weights_rejects_a_mismatching_architecture(tmp_path):
     torch.save({**good, "state_dict": state}, path)
     with pytest.raises(ValueError, match=f"w.pt: the weights hold NaN or infinite values \\({re.escape(name)}: 1 of"):
         load_weights(path)
+    # integer weights were copied into the float parameters: an int8 file loaded as an all-zero network
+    state = {k: (v.to(torch.int8) if v.is_floating_point() else v) for k, v in net.state_dict().items()}
+    torch.save({**good, "state_dict": state}, path)
+    with pytest.raises(ValueError, match=f"w.pt: the weight file stores {re.escape(name)} as torch.int8; expected "
+                                         "a floating dtype"):
+        load_weights(path)
 
 
 def test_update_weight_metadata_keeps_the_weights(tmp_path):
@@ -117,6 +123,10 @@ def test_metadata_that_a_weight_file_cannot_hold_is_refused(tmp_path):
                       ([0.1, np.float32(2)], "metadata['landmark_threshold'][1]: expected plain data"),
                       ({"a": tmp_path}, "metadata['landmark_threshold']['a']: expected plain data")):
         with pytest.raises(ValueError, match=re.escape(name)):
+            update_weight_metadata(path, landmark_threshold=bad)
+    # values load_weights refuses were written, and the file then refused
+    for bad, match in ((float("nan"), "got nan"), (1.5, "got 1.5"), ([0.3] * 3, r"per landmark channel \(24\), got 3")):
+        with pytest.raises(ValueError, match=f"landmark_threshold: expected .*{match}"):
             update_weight_metadata(path, landmark_threshold=bad)
     assert path.read_bytes() == before
     update_weight_metadata(path, landmark_threshold=[0.3] * 24, note={"run": "x", "steps": 3, "ok": True, "none": None})

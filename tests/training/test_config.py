@@ -32,6 +32,14 @@ def test_an_output_path_that_is_a_file_is_refused(tmp_path):
         TrainConfig(data="d", out=str(tmp_path / "run"))
 
 
+@pytest.mark.parametrize("field", ["data", "out", "init", "holdout"])
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(field):
+    """An unset $OUT in a script trained into the current folder."""
+    values = {"data": "d", "out": "o", field: ""}
+    with pytest.raises(ValueError, match=f"{field}: expected a folder or file name, got an empty string"):
+        TrainConfig(**values)
+
+
 def test_round_trip_and_unknown_fields():
     c = TrainConfig(data="d", out="o", steps=7)
     assert TrainConfig.from_dict(c.to_dict()) == c

@@ -224,6 +224,23 @@ def test_a_foreign_or_damaged_log_is_named_and_an_old_one_gets_the_new_columns(t
     assert float(rows[1]["lr"]) > 0
 
 
+def test_export_refuses_integer_storage_and_thresholds_load_weights_would_refuse(tmp_path):
+    """An int8 export loaded as an all-zero network, silently; a NaN threshold was written, then refused."""
+    summary = train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
+    for dtype in (torch.int8, torch.bool, torch.complex64):
+        with pytest.raises(ValueError, match=f"dtype: expected torch.float16, torch.bfloat16 or torch.float32, "
+                                             f"got {dtype}"):
+            export_weights(summary.checkpoint, tmp_path / "w.pt", dtype=dtype)
+    for threshold in (float("nan"), 5, [0.5] * 3):
+        with pytest.raises(ValueError, match=r"metadata\['landmark_threshold'\]: expected"):
+            export_weights(summary.checkpoint, tmp_path / "w.pt", metadata={"landmark_threshold": threshold})
+    assert not (tmp_path / "w.pt").exists()
+    net = load_weights(export_weights(summary.checkpoint, tmp_path / "w.pt", dtype=torch.bfloat16))
+    ema = load_checkpoint(summary.checkpoint)["ema"]
+    for key, value in net.state_dict().items():
+        torch.testing.assert_close(value, ema[key].bfloat16().float())
+
+
 def test_export_refuses_to_overwrite_its_checkpoint(tmp_path):
     summary = train(_config(tmp_path, steps=1), TinyHeads(4), progress=False)
     with pytest.raises(ValueError, match="out: .*last.pt is the checkpoint being exported"):

@@ -134,9 +134,17 @@ def test_evaluate_network_runs_where_asked_and_checks_thresholds():
     net.to = to
     evaluate_network(net, data, mirror=False, device="cpu")
     assert [torch.device(d) for d in moved] == [torch.device("cpu"), torch.device("cpu")]  # there and back
-    with pytest.raises(ValueError, match=r"threshold: expected one value or one per landmark channel \(24\), "
-                                         r"got shape \(5,\)"):
+    with pytest.raises(ValueError, match=r"threshold: expected one threshold per landmark channel \(24\), got 5"):
         evaluate_network(net, data, mirror=False, threshold=[0.5] * 5)
+    # NaN or 7 found no landmark and scored the visibility as the hidden fraction; a string failed inside torch
+    for bad, match in ((float("nan"), "got nan"), (7.0, "got 7.0"), ("high", "got 'high'"),
+                       (torch.full((2, 24), 0.5), r"got shape \(2, 24\)")):
+        with pytest.raises(ValueError, match=f"threshold: expected .*{match}"):
+            evaluate_network(net, data, mirror=False, threshold=bad)
+    for bad, match in ((torch.tensor([0.2, float("nan")]), "got nan"), (torch.tensor([]), r"shape \(0,\)"),
+                       (torch.tensor([0.5, 1.5]), "got 1.5")):
+        with pytest.raises(ValueError, match=f"candidates: expected .*{match}"):
+            calibrate_landmark_threshold(net, data, mirror=False, candidates=bad)
 
 
 def test_normal_angles_refuses_nan_and_integer_maps():
@@ -151,6 +159,14 @@ def test_normal_angles_refuses_nan_and_integer_maps():
         normal_angles(bad, n, mask)
     with pytest.raises(ValueError, match="target: expected a floating-point tensor"):
         normal_angles(n, n.long(), mask)
+    # a zero normal (background of a masked normal map) scored 0 degrees against anything
+    missed = n.clone()
+    missed[0, :, 0, 1] = 0.0
+    with pytest.raises(ValueError, match="predicted: 1 pixels of mask hold no normal"):
+        normal_angles(missed, n, mask)
+    with pytest.raises(ValueError, match="target: 1 pixels of mask hold no normal"):
+        normal_angles(n, missed, mask)
+    assert normal_angles(missed, n, torch.tensor([[[[True, False]]]])).tolist() == [0.0]  # outside the mask: fine
 
 
 def test_normal_angles_are_exact_near_zero():

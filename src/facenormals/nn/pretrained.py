@@ -120,6 +120,9 @@ def update_weight_metadata(path: str | Path, **items: object) -> Path:
     check_plain_metadata(items)
     path = Path(path)
     payload = _read_payload(path)
+    if "landmark_threshold" in items:  # not written where load_weights would then refuse the file
+        check_threshold(items["landmark_threshold"], _int_or_none(payload["architecture"].get("num_landmarks")),
+                        "landmark_threshold")
     payload["metadata"] = {**payload.get("metadata", {}), **items}
     with atomic_write(path) as part:
         torch.save(payload, part)
@@ -152,6 +155,11 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
                                  depth=int(arch["depth"]))
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: the weight file's architecture {arch} is not a valid network ({error})") from None
+    expected = net.state_dict()
+    for key, value in payload["state_dict"].items():  # load_state_dict would copy 0/1 integers into the weights
+        if key in expected and expected[key].is_floating_point() and not value.is_floating_point():
+            raise ValueError(f"{path}: the weight file stores {key} as {value.dtype}; expected a floating dtype "
+                             "(float16, bfloat16 or float32)")
     state = {k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
     for key, value in state.items():  # else every map would be NaN, an error far from its cause
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
@@ -163,18 +171,29 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         raise ValueError(f"{path}: weights do not match the architecture {arch} ({error})") from None
     net.metadata = dict(payload.get("metadata", {}))
     try:  # a NaN threshold detects nothing, silently; a string fails in the middle of a reconstruction
-        _check_threshold(net.metadata.get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD), net.num_landmarks)
+        check_threshold(net.metadata.get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD), net.num_landmarks)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
     return net.to(device).eval()
 
 
-def _check_threshold(value: object, channels: int) -> None:
-    """Raise ``ValueError`` unless ``value`` is a number in (0, 1) or a list of one per channel."""
+def check_threshold(value: object, channels: int | None, name: str = "metadata landmark_threshold") -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is a number in (0, 1) or a list (or 1-D
+    tensor) of one per channel (any length when ``channels`` is ``None``)."""
+    if isinstance(value, torch.Tensor):
+        if value.dim() > 1:
+            raise ValueError(f"{name}: expected one value or one per landmark channel, got shape {tuple(value.shape)}")
+        value = value.tolist()
     values = list(value) if isinstance(value, (list, tuple)) else [value]
-    if isinstance(value, (list, tuple)) and len(values) != channels:
-        raise ValueError(f"metadata landmark_threshold: expected one threshold per landmark channel ({channels}), "
-                         f"got {len(values)}")
+    if isinstance(value, (list, tuple)) and channels is not None and len(values) != channels:
+        raise ValueError(f"{name}: expected one threshold per landmark channel ({channels}), got {len(values)}")
     for item in values:
         if isinstance(item, bool) or not isinstance(item, (int, float)) or not 0.0 < float(item) < 1.0:
-            raise ValueError(f"metadata landmark_threshold: expected numbers in (0, 1), got {item!r}")
+            raise ValueError(f"{name}: expected numbers in (0, 1), got {item!r}")
+
+
+def _int_or_none(value: object) -> int | None:
+    try:
+        return int(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None

@@ -8,7 +8,8 @@ import torch
 from torch.utils.data import Dataset
 
 from facenormals.core.files import atomic_write
-from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata, describe_load_error
+from facenormals.nn.pretrained import (WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata, check_threshold,
+                                      describe_load_error)
 
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
 
@@ -54,8 +55,8 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
         out: the weight file to write.
         use_ema: export the moving average of the weights (what the run evaluates) rather than
             the raw weights.
-        dtype: storage dtype of floating tensors (float16 halves the file; weights are cast back
-            to float32 when loaded).
+        dtype: storage dtype of floating tensors: float16 (halves the file), bfloat16 or float32;
+            weights are cast back to float32 when loaded.
         metadata: extra JSON-able facts to store (metrics, data, hardware).
         calibration_data: optional dataset (e.g. training samples) on which the landmark detection
             threshold is calibrated (:func:`~facenormals.training.calibrate_landmark_threshold`)
@@ -65,13 +66,19 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
         ``out``.
 
     Raises:
-        ValueError: when ``out`` is ``checkpoint`` itself (the training state would be lost).
+        ValueError: when ``out`` is ``checkpoint`` itself (the training state would be lost), ``dtype``
+            is not a floating dtype or ``metadata`` is not plain data or holds an invalid
+            ``landmark_threshold``.
     """
+    if dtype not in (torch.float16, torch.bfloat16, torch.float32):
+        raise ValueError(f"dtype: expected torch.float16, torch.bfloat16 or torch.float32, got {dtype}")
     check_plain_metadata(metadata or {})
     if Path(out).resolve() == Path(checkpoint).resolve():
         raise ValueError(f"out: {out} is the checkpoint being exported; writing the weights over it would lose "
                          "the training state, choose another file")
     state = load_checkpoint(checkpoint)
+    if metadata and "landmark_threshold" in metadata:  # not written where load_weights would then refuse the file
+        check_threshold(metadata["landmark_threshold"], state["num_landmarks"], "metadata['landmark_threshold']")
     weights = state["ema" if use_ema else "model"]
     tensors = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in weights.items()}
     config = state["config"]

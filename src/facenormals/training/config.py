@@ -128,6 +128,8 @@ class TrainConfig:
             if name in ("data", "out", "holdout", "init"):
                 if not isinstance(value, (str, os.PathLike)):
                     raise ValueError(f"{name}: expected a path (str or os.PathLike), got {type(value).__name__}")
+                if not os.fspath(value):  # e.g. an unset $OUT: Path("") is the current folder
+                    raise ValueError(f"{name}: expected a folder or file name, got an empty string")
                 setattr(self, name, os.fspath(value))
             elif field.type in ("int", "int | None") and isinstance(value, numbers.Integral):
                 setattr(self, name, int(value))

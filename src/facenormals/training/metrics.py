@@ -13,7 +13,7 @@ from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL, drop_hidden_landmarks
 from facenormals.models import MorphableModel
 from facenormals.nn.mirror import mirror_averaged
-from facenormals.nn.pretrained import landmark_threshold
+from facenormals.nn.pretrained import check_threshold, landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 from facenormals.reconstruct.pipeline import landmark_channels
 
@@ -81,6 +81,11 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     for name, x in (("predicted", predicted), ("target", target)):
         check_floating(x, name)
         check_finite(x, name)
+        short = int((x.norm(dim=1, keepdim=True)[mask] <= 0.5).sum())
+        if short:  # a zero normal (background) would score 0 degrees against anything
+            raise ValueError(f"{name}: {short} pixels of mask hold no normal (norm <= 0.5, e.g. background zeros); "
+                             "score unit normals (the network's `normals`, not its masked `normal_map()`) or leave "
+                             "those pixels out of mask")
     a, b = torch.nn.functional.normalize(predicted, dim=1), torch.nn.functional.normalize(target, dim=1)
     # atan2(|a × b|, a · b): exact near 0 and 180 degrees, where acos of a float32 cosine reads up to 0.02 degrees
     angle = torch.atan2(torch.linalg.cross(a, b, dim=1).norm(dim=1), (a * b).sum(1))
@@ -117,6 +122,8 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
     channels = None if model is None else landmark_channels(model)
     if threshold is None:
         threshold = landmark_threshold(net)
+    else:  # NaN or 7 would find no landmark, and score the visibility as the hidden fraction
+        check_threshold(threshold, getattr(net, "num_landmarks", None), "threshold")
     if max_samples is not None:
         dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
     if len(dataset) == 0:
@@ -124,10 +131,6 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
     home = next(net.parameters()).device
     device = home if device is None else torch.device(device)
     threshold = torch.as_tensor(threshold, dtype=torch.float32, device=device)
-    channels_out = getattr(net, "num_landmarks", None)
-    if threshold.dim() > 1 or (threshold.dim() == 1 and channels_out is not None and threshold.numel() != channels_out):
-        raise ValueError(f"threshold: expected one value or one per landmark channel ({channels_out}), "
-                         f"got shape {tuple(threshold.shape)}")
     was_training = net.training
     net.to(device).eval()
     try:
@@ -200,6 +203,11 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
         raise ValueError("dataset: expected at least one sample to calibrate on, got none")
     if candidates is None:
         candidates = torch.linspace(0.05, 0.95, 37)
+    candidates = torch.as_tensor(candidates, dtype=torch.float32)
+    if candidates.dim() != 1 or candidates.numel() == 0:
+        raise ValueError(f"candidates: expected a non-empty 1-D tensor of thresholds, got shape "
+                         f"{tuple(candidates.shape)}")
+    check_threshold(candidates, None, "candidates")
     was_training = net.training
     net.eval()
     device = next(net.parameters()).device
