@@ -25,8 +25,11 @@ def test_photo_folder(tmp_path):
     (tmp_path / "notes.txt").write_text("not an image")
     library = PhotoLibrary([tmp_path], use_skimage=False)
     assert len(library) == 1 and library.sources[0].endswith("a.png")
-    crop = random_background(np.random.default_rng(0), (32, 32), library, photo_probability=1.0)
-    assert crop.shape == (32, 32, 3)
+    crops = np.stack([random_background(np.random.default_rng(i), (32, 32), library, photo_probability=1.0)
+                      for i in range(8)])
+    assert crops.shape == (8, 32, 32, 3)
+    pixels = crops.reshape(-1, 3).astype(int)  # RGB: the red half stays red, never blue
+    assert (pixels == (255, 0, 0)).all(1).any() and not (pixels[:, 2] > 128).any()
     with pytest.raises(ValueError, match="does not exist"):
         PhotoLibrary([tmp_path / "missing"])
 

@@ -391,6 +391,24 @@ def test_framing_hits_the_fill_and_keeps_the_head_inside(generator, fill):
     assert boxes.min() >= -0.5 and boxes.max() <= 127.5
 
 
+@pytest.mark.parametrize("focal,fill", [(20000.0, 0.4), (5.0, 1.0)])
+def test_a_head_beyond_the_clipping_planes_is_refused(generator, focal, fill):
+    """Past the far plane (50 m) the image was empty and all 24 landmarks marked visible; inside the
+    near plane (5 mm) the head was clipped and missed its fill."""
+    with configured(generator, SynthConfig.head_only(fill=(fill, fill), focal=(focal, focal))) as gen:
+        with pytest.raises(ValueError, match=rf"focal: {focal:.0f} px \(at 128 px\) with fill {fill:.2f} puts the "
+                                             r"head .* outside the renderer's clipping range \[5, 50000\] mm"):
+            gen.generate(0, range(4))
+
+
+def test_no_directional_light_renders(generator):
+    """num_lights = (0, k) is allowed; a draw of no light made a (0,) direction array the renderer refused."""
+    with configured(generator, SynthConfig.head_only(num_lights=(0, 0), use_skimage=False)) as gen:
+        batch = gen.generate(0, range(2))
+    skin = batch.image[batch.segmentation == 1]
+    assert skin.size and 0 < skin.mean() < 255  # the ambient light alone shows the head
+
+
 def test_a_framing_that_did_not_converge_is_still_inside(generator, monkeypatch):
     """Whatever the solve leaves, the head is moved back until it lies inside the image."""
     from facenormals.data import generator as module

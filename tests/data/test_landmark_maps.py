@@ -92,3 +92,16 @@ def test_scalar_options_and_empty_maps_are_checked():
         landmark_maps(torch.zeros(1, 1, 2), None, (8, 8), sigma=torch.tensor([1.0, 2.0]))
     with pytest.raises(ValueError, match=r"maps: expected H, W >= 1, got shape \(1, 2, 0, 5\)"):
         landmarks_from_maps(torch.zeros(1, 2, 0, 5))
+
+
+def test_eps_and_a_nan_threshold_are_checked():
+    """eps = 0 took log(0) beside a sharp peak: a NaN position for a landmark counted as found; a NaN
+    threshold found nothing, silently."""
+    z = landmark_maps(torch.tensor([[[3.2, 4.0]]]), None, (8, 8), sigma=0.3)
+    for eps in (0.0, -1.0):
+        with pytest.raises(ValueError, match=f"eps: expected a finite number > 0, got {eps}"):
+            landmarks_from_maps(z, eps=eps)
+    with pytest.raises(ValueError, match="threshold: expected numbers .*got NaN"):
+        landmarks_from_maps(z, threshold=float("nan"))
+    points, found = landmarks_from_maps(z, threshold=float("-inf"))  # -inf keeps every peak
+    assert bool(found.all()) and bool(torch.isfinite(points).all())

@@ -467,3 +467,76 @@ def test_a_manifest_whose_image_size_disagrees_with_the_samples_is_named(dataset
     with pytest.raises(ValueError, match=r"shard_00000.npz: corrupt shard, cannot read sample 0 .*member image/0000 "
                                          r"has shape \(3, 128, 128\), expected \(3, 64, 64\)"):
         SyntheticHeadDataset(root)[0]
+
+
+def test_a_shard_with_a_damaged_compression_method_is_regenerated_and_named(dataset_root, tmp_path):
+    """zipfile raises NotImplementedError for an unknown compression method: resume crashed, the
+    dataset's error named no file."""
+    import shutil
+    import struct
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    path = root / "shard_00000.npz"
+    data = bytearray(path.read_bytes())
+    entry = data.index(b"PK\x01\x02")  # the first central-directory entry: index.npy
+    assert data[entry + 46 : entry + 46 + 9] == b"index.npy"
+    data[entry + 10 : entry + 12] = struct.pack("<H", 99)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="shard_00000.npz: corrupt shard, cannot read sample 0 "
+                                         r"\(NotImplementedError"):
+        SyntheticHeadDataset(root)[0]
+    summary = _write(root)
+    assert summary.shards_written == 1 and summary.shards_skipped == 2
+    assert path.read_bytes() == (dataset_root / "shard_00000.npz").read_bytes()
+
+
+@pytest.mark.parametrize("text,match", [
+    (b"\xff\xfe{", "cannot read the manifest"),
+    (json.dumps({"version": None}).encode(), "version: expected an integer >= 1, got None"),
+    (json.dumps({"version": "abc"}).encode(), "version: expected an integer >= 1, got 'abc'"),
+    (json.dumps({"generator": [1]}).encode(), r"generator: expected an integer >= 1, got \[1\]"),
+])
+def test_an_undecodable_manifest_or_version_is_named(dataset_root, tmp_path, text, match):
+    """A non-UTF-8 manifest gave a bare UnicodeDecodeError, a null version a TypeError traceback."""
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    if text.startswith(b"{"):
+        manifest = {**json.loads((root / "manifest.json").read_text()), **json.loads(text)}
+        text = json.dumps(manifest).encode()
+    (root / "manifest.json").write_bytes(text)
+    with pytest.raises(ValueError, match="manifest.json: " + match):
+        SyntheticHeadDataset(root)
+    with pytest.raises(ValueError, match="manifest.json: " + match):
+        _write(root)
+
+
+def test_allow_missing_serves_only_complete_shards(dataset_root, tmp_path):
+    """A shard of the old count while the manifest already announces an extension failed mid-epoch."""
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest["count"] = 16  # what an extending rank publishes first: shard 2 (samples 8, 9) now needs 8..11
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    dataset = SyntheticHeadDataset(root, allow_missing=True)
+    assert len(dataset) == 8 and sorted(int(dataset[i]["index"]) for i in range(8)) == list(range(8))
+
+
+def test_the_same_photo_folder_spelled_differently_resumes(tmp_path, monkeypatch):
+    """background_folders were compared as strings: ./photos/ after photos refused to resume."""
+    import cv2
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "photos").mkdir()
+    cv2.imwrite(str(tmp_path / "photos" / "a.png"), np.zeros((64, 64, 3), np.uint8))
+    first = SynthConfig.head_only(background_folders=("photos",), use_skimage=False)
+    _write(tmp_path / "out", count=2, shard_size=1, config=first)
+    again = SynthConfig.head_only(background_folders=("./photos/",), use_skimage=False)
+    assert _write(tmp_path / "out", count=2, shard_size=1, config=again).shards_skipped == 2
+    with pytest.raises(ValueError, match="holds a dataset with another config .*fill"):
+        _write(tmp_path / "out", count=2, shard_size=1, config=SynthConfig.head_only(
+            background_folders=("photos",), use_skimage=False, fill=(0.5, 0.6)))

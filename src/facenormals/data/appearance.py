@@ -183,4 +183,5 @@ def sample_lighting(rng: np.random.Generator, num_lights: tuple[int, int] = (1, 
         intensity = rng.uniform(0.6, 1.5) if k == 0 else rng.uniform(0.1, 0.8)
         colors.append(color_temperature(rng.uniform(*temperature)) * intensity)
     ambient = color_temperature(rng.uniform(*temperature)) * rng.uniform(0.12, 0.55)
-    return Lighting(ambient=ambient, directions=np.asarray(directions), colors=np.asarray(colors))
+    return Lighting(ambient=ambient, directions=np.asarray(directions, dtype=np.float64).reshape(-1, 3),
+                    colors=np.asarray(colors, dtype=np.float64).reshape(-1, 3))  # (0, 3) without lights

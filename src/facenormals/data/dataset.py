@@ -13,7 +13,8 @@ import torch
 from torch.utils.data import Dataset
 
 from facenormals.data.landmark_maps import DEFAULT_SIGMA, landmark_maps
-from facenormals.data.shards import SHARD_ARRAYS, read_manifest, read_member, shard_name, shard_range
+from facenormals.data.shards import (SHARD_ARRAYS, read_manifest, read_member, shard_is_complete, shard_name,
+                                     shard_range)
 
 __all__ = ["SyntheticHeadDataset"]
 
@@ -77,6 +78,9 @@ class SyntheticHeadDataset(Dataset):
         self.normal_scale = float(self.manifest["normal_scale"])
         num_shards = -(-self.count // self.shard_size)
         present = [k for k in range(num_shards) if (self.root / shard_name(k)).is_file()]
+        if allow_missing:  # a shard of an extension being written, or a stale one, would fail mid-epoch
+            present = [k for k in present
+                       if shard_is_complete(self.root / shard_name(k), shard_range(k, self.count, self.shard_size))]
         missing = sorted(set(range(num_shards)) - set(present))
         if missing and not allow_missing:
             names = ", ".join(shard_name(k) for k in missing[:5]) + (" ..." if len(missing) > 5 else "")
@@ -143,7 +147,7 @@ class SyntheticHeadDataset(Dataset):
                                      f"from the manifest's image_size {S}")
         except _StaleShard:
             raise
-        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error) as error:
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError) as error:
             archive = self._archives.pop(shard, None)
             if archive is not None:
                 archive.close()

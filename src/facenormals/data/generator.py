@@ -26,7 +26,7 @@ from facenormals.core.check import check_integer
 from facenormals.data.appearance import sample_hair_color, sample_iris_color, sample_lighting, skin_albedo, srgb_to_linear
 from facenormals.data.backgrounds import PhotoLibrary, random_background
 from facenormals.data.head import HeadAssets
-from facenormals.data.render import MeshPart, RenderedTiles, TileRenderer, TileScene
+from facenormals.data.render import FAR_MM, NEAR_MM, MeshPart, RenderedTiles, TileRenderer, TileScene
 from facenormals.data.scene import (
     HEAD_LABELS,
     clothing_part,
@@ -436,6 +436,11 @@ class SyntheticHeadGenerator:
             lateral = posed[:, :2] + position[:2]
             edge = np.where(lateral > 0, size - 0.5 - _FRAME_MARGIN, -0.5 + _FRAME_MARGIN) - principal
             position[2] = max(position[2], float(np.max(f * lateral / edge - posed[:, 2:3])))
+        depth = posed[:, 2] + position[2]
+        if depth.min() < NEAR_MM or depth.max() > FAR_MM:  # clipped: an empty image with every landmark "visible"
+            raise ValueError(f"focal: {f / scale:.0f} px (at 128 px) with fill {fill:.2f} puts the head "
+                             f"{depth.min():.0f}-{depth.max():.0f} mm from the camera, outside the renderer's clipping "
+                             f"range [{NEAR_MM:g}, {FAR_MM:g}] mm; narrow the config's focal or fill range")
         translation = rotation.T @ position - middle
         return np.array([f, u0, v0], dtype=np.float32), translation.astype(np.float32)
 

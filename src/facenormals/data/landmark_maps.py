@@ -18,7 +18,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_image_size, check_nonnegative, check_shape
+from facenormals.core.check import (check_finite, check_floating, check_image_size, check_nonnegative, check_positive,
+                                    check_shape)
 
 __all__ = ["landmark_maps", "landmarks_from_maps"]
 
@@ -114,9 +115,12 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
     b, l, h, w = dims["B"], dims["L"], dims["H"], dims["W"]
     if h < 1 or w < 1:
         raise ValueError(f"maps: expected H, W >= 1, got shape {tuple(maps.shape)}")
+    check_positive(eps, "eps")  # log(0) made the sub-pixel offset NaN at a landmark counted as found
     threshold = torch.as_tensor(threshold, dtype=maps.dtype, device=maps.device)
     if threshold.dim() != 0:
         check_shape(threshold, [l], "threshold")
+    if bool(torch.isnan(threshold).any()):  # would find nothing, silently (-inf: everything is allowed)
+        raise ValueError("threshold: expected numbers (or -inf to keep every peak), got NaN")
     flat = maps.reshape(b, l, h * w)
     peak, index = flat.max(-1)
     row, col = index // w, index % w

@@ -28,6 +28,11 @@ import numpy as np
 
 __all__ = ["Lighting", "MeshPart", "RenderedTiles", "TileRenderer", "TileScene"]
 
+NEAR_MM = 5.0
+"""The default near clipping depth of :class:`TileRenderer`, mm."""
+FAR_MM = 50000.0
+"""The default far clipping depth of :class:`TileRenderer`, mm."""
+
 #: Most directional lights in a scene (the size of the shader's light arrays).
 MAX_LIGHTS = 3
 #: Largest side of the supersampled framebuffer (24 bytes a sample: 400 MB at 4096²).
@@ -214,8 +219,8 @@ class TileRenderer:
         image_size: tuple[int, int] = (128, 128),
         grid: int = 8,
         supersample: int = 3,
-        near: float = 5.0,
-        far: float = 50000.0,
+        near: float = NEAR_MM,
+        far: float = FAR_MM,
     ) -> None:
         from facenormals.data.gl_platform import create_gl_context
 

@@ -99,12 +99,15 @@ def read_manifest(root: str | Path) -> dict:
         raise FileNotFoundError(f"{path}: no dataset manifest (write one with `facenormals synth`)")
     try:
         manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path}: cannot read the manifest ({error})") from error
+    except (OSError, ValueError) as error:  # ValueError: JSONDecodeError and UnicodeDecodeError
+        raise ValueError(f"{path}: cannot read the manifest ({error})") from None
     if not isinstance(manifest, dict):
         raise ValueError(f"{path}: expected a JSON object, got {type(manifest).__name__}")
     if manifest.get("format") != FORMAT_NAME:
         raise ValueError(f"{path}: format is {manifest.get('format')!r}, expected {FORMAT_NAME!r}")
+    for key in ("version", "generator"):
+        if key in manifest:
+            _check_positive(manifest[key], f"{path}: {key}")
     if int(manifest.get("version", 0)) > FORMAT_VERSION:
         raise ValueError(f"{path}: format version {manifest.get('version')} is newer than supported ({FORMAT_VERSION})")
     missing = [key for key in ("count", "shard_size", "image_size", "normal_scale", "model") if key not in manifest]
@@ -145,8 +148,8 @@ def shard_is_complete(path: Path, indices: range) -> bool:
             with archive.open("index.npy") as handle:
                 index = np.lib.format.read_array(handle)
             names = set(archive.namelist())
-    except (OSError, zipfile.BadZipFile, zlib.error, ValueError, KeyError, EOFError):
-        return False  # unreadable: written again
+    except (OSError, zipfile.BadZipFile, zlib.error, ValueError, KeyError, EOFError, NotImplementedError):
+        return False  # unreadable (NotImplementedError: a damaged compression method): written again
     if not np.array_equal(index, np.arange(indices.start, indices.stop)):
         return False
     return (all(f"{name}.npy" in names for name in SHARD_ARRAYS)
@@ -229,6 +232,11 @@ def _model_fingerprint(model) -> dict:
         "landmark_names": list(model.landmark_names),
         "landmark_indices": model.landmark_indices.tolist(),  # they place the landmarks, hair and make-up
     }
+
+
+def _without_folders(config: object) -> object:
+    """A manifest's ``config`` without ``background_folders`` (their spelling may differ, their photos not)."""
+    return {k: v for k, v in config.items() if k != "background_folders"} if isinstance(config, dict) else config
 
 
 def _check_positive(value: int, name: str, minimum: int = 1) -> int:
@@ -348,9 +356,11 @@ def write_dataset(
                              f"it, rewriting or orphaning its shards of samples from {count} on; use another folder, "
                              "or the SyntheticHeadDataset of this one with a Subset")
         for key in ("seed", "shard_size", "image_size", "model", "config", "photos"):
-            if existing.get(key) != manifest.get(key):
-                raise ValueError(f"{root}: holds a dataset with another {key} "
-                                 f"({_difference(existing.get(key), manifest.get(key))}); "
+            old, new = existing.get(key), manifest.get(key)
+            if key == "config" and "photos" in existing:  # photos compared by content: ./photos/ is photos
+                old, new = _without_folders(old), _without_folders(new)
+            if old != new:
+                raise ValueError(f"{root}: holds a dataset with another {key} ({_difference(old, new)}); "
                                  "use another folder or the same settings to resume")
     num_shards = -(-count // shard_size)
     mine = [k for k in range(num_shards) if k % world_size == rank]
