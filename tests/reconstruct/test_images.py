@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -103,18 +105,46 @@ def test_corrupt_jpeg_data_is_an_error_not_garbage_pixels(tmp_path):
         read_image(bad)
 
 
-def test_a_large_jpeg_is_read_past_pillows_decompression_bomb_limit(tmp_path, monkeypatch):
-    """Regression: Pillow's integrity check refused JPEGs over 179 M pixels with a traceback (and
-    warned over 89 M); a limit of 1,000 pixels stands in for those here."""
-    import warnings
+def test_damaged_scan_data_that_still_decodes_is_refused(tmp_path, capfd):
+    """29 zeroed bytes in the example photo's scan: OpenCV returned 45 % garbage pixels and exit 0
+    (libjpeg only printed "Corrupt JPEG data: ... extraneous bytes" to stderr), and Pillow's decoder,
+    the earlier check, accepted the stream too."""
+    import io
 
     import cv2
     from PIL import Image
 
-    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
-    path = tmp_path / "large.jpg"
-    cv2.imwrite(str(path), np.full((64, 64, 3), 128, np.uint8))  # 4 times the "bomb" limit of 2,000
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert read_image(path).shape == (64, 64, 3)
-    assert Image.MAX_IMAGE_PIXELS == 1000  # the limit is restored
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    data = bytearray(photo.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 29] = bytes(29)
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(bytes(data))
+    assert cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None  # OpenCV accepts it
+    with Image.open(io.BytesIO(bytes(data))) as image:
+        image.load()  # and so does Pillow
+    capfd.readouterr()
+    with pytest.raises(ImageReadError, match=r"bad.jpg: corrupt JPEG data \(Corrupt JPEG data: \d+ extraneous bytes"):
+        read_image(bad)
+    assert "Corrupt JPEG" not in capfd.readouterr().err  # the warning became the error, not stderr noise
+    assert read_image(photo).shape == (512, 512, 3)
+
+
+def test_other_stderr_output_during_the_decode_is_passed_on(capfd, monkeypatch):
+    """fd 2 is captured only to find libjpeg's damage warnings; anything else reaches stderr."""
+    import os
+
+    import cv2
+
+    real = cv2.imdecode
+
+    def noisy(data, flags):
+        os.write(2, b"something else\n")
+        return real(data, flags)
+
+    monkeypatch.setattr(cv2, "imdecode", noisy)
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    capfd.readouterr()
+    assert read_image(photo).shape == (512, 512, 3)
+    assert capfd.readouterr().err == "something else\n"
+

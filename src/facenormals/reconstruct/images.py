@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +24,10 @@ def read_image(path: str | Path) -> np.ndarray:
     are scaled to 8 bits (OpenCV's ``IMREAD_COLOR``, which also applies the EXIF orientation tag).
 
     Raises:
-        ImageReadError: naming ``path`` if it does not exist, is a folder or is not a decodable image.
+        ImageReadError: naming ``path`` if it does not exist, is a folder or is not a decodable
+            image, or if libjpeg reports damaged JPEG data (which OpenCV would decode to garbage
+            pixels without an error; damage that still decodes cleanly cannot be seen, as JPEG has
+            no checksum).
 
     Example:
         >>> import cv2, tempfile, os
@@ -40,38 +47,53 @@ def read_image(path: str | Path) -> np.ndarray:
         data = np.fromfile(path, dtype=np.uint8)  # also works for non-ASCII paths, unlike cv2.imread
     except OSError as error:
         raise ImageReadError(f"{path}: cannot be read ({error.strerror or error})") from None
+    jpeg = data[:3].tobytes() == b"\xff\xd8\xff"
     try:
-        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+        image, warnings = (_decode_with_warnings(data) if jpeg
+                           else (cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None, ""))
     except cv2.error as error:  # e.g. a header claiming more pixels than OpenCV accepts
         raise ImageReadError(f"{path}: cannot be decoded ({str(error).strip().splitlines()[-1]})") from None
     if image is None:
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
-    if data[:3].tobytes() == b"\xff\xd8\xff":
-        _check_jpeg_stream(path, data)
+    damage = [line for line in warnings.splitlines() if line.startswith(_JPEG_DAMAGE)]
+    if damage:
+        raise ImageReadError(f"{path}: corrupt JPEG data ({damage[0].strip()})")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)  # a third of the time of a reversed copy
 
 
-def _check_jpeg_stream(path: Path, data: np.ndarray) -> None:
-    """OpenCV decodes a JPEG with corrupt entropy-coded data as best it can (libjpeg only prints
-    "Corrupt JPEG data" to stderr) and returns garbage pixels without an error; Pillow's decoder
-    refuses the same stream, so it checks the file once more. It decodes at an eighth of the size
-    (libjpeg's DCT scaling: every coefficient is still entropy-decoded, so the same streams are
-    refused, in a quarter of the time). Pillow's decompression-bomb limit (89 M pixels warns, 179 M
-    fails) is lifted for the check: OpenCV has already decoded the whole image."""
-    import io
-    import warnings
+_JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG file", "Inconsistent progression sequence")
+"""libjpeg's warnings about damaged data (``JWRN_*``: bad Huffman codes, extraneous bytes, missing
+restart markers, a truncated file); its other warnings (an unknown JFIF revision...) are harmless."""
 
-    from PIL import Image
+_STDERR_LOCK = threading.Lock()
 
-    limit = Image.MAX_IMAGE_PIXELS
-    try:
-        Image.MAX_IMAGE_PIXELS = None
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(io.BytesIO(data.tobytes())) as image:
-                image.draft(image.mode, (max(1, image.width // 8), max(1, image.height // 8)))
-                image.load()
-    except (OSError, SyntaxError, ValueError) as error:
-        raise ImageReadError(f"{path}: corrupt JPEG data ({error})") from None
-    finally:
-        Image.MAX_IMAGE_PIXELS = limit
+
+def _decode_with_warnings(data: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """``cv2.imdecode`` and what libjpeg printed meanwhile.
+
+    libjpeg decodes damaged scan data as best it can and only *prints* "Corrupt JPEG data: ..." to
+    the C ``stderr``; OpenCV returns the garbage pixels without an error. File descriptor 2 is
+    redirected to a temporary file for the call (under a lock), and anything else written there
+    meanwhile (e.g. by another thread) is passed on to the real ``stderr``. Damage that leaves valid
+    Huffman codes is invisible to any decoder: JPEG has no checksum.
+    """
+    import cv2
+
+    with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
+        sys.stderr.flush()
+        try:
+            saved = os.dup(2)
+        except OSError:  # no stderr to redirect (a daemon): decode without the check
+            return cv2.imdecode(data, cv2.IMREAD_COLOR), ""
+        try:
+            os.dup2(capture.fileno(), 2)
+            image = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        text = capture.read().decode("utf-8", errors="replace")
+    others = "".join(line for line in text.splitlines(keepends=True) if not line.startswith(_JPEG_DAMAGE))
+    if others:
+        sys.stderr.write(others)
+    return image, text
