@@ -41,8 +41,9 @@ PUBLIC = {
                          "depth_errors", "depth_statistics", "evaluate_reconstruction", "fit_similarity",
                          "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "shares_vertex_order",
                          "summarise"],
-    "facenormals.fitting": ["FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate", "drop_hidden_landmarks",
-                            "fit_head", "grid_subset", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"],
+    "facenormals.fitting": ["FACING_AWAY_COSINE", "FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate",
+                            "drop_hidden_landmarks", "facing_cosine", "fit_head", "grid_subset", "hidden_landmarks",
+                            "landmark_pose_jacobian", "prealign_pose"],
     # used by examples/ (paper_pipeline.py, demo_synthetic_fit.py) and the `demo` command
     "facenormals.fitting.oracle": ["OracleViews", "render_oracle_views"],
     "facenormals.demo": ["DemoReport", "run_demo"],

@@ -298,3 +298,48 @@ def test_model_normals_change_nothing_where_every_landmark_is_seen():
         prealign_pose(uv, points, K, model_normals=torch.zeros(5, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="model_normals: expected finite values"):
         prealign_pose(uv, points, K, model_normals=torch.full((24, 3), float("nan"), dtype=torch.float64))
+
+
+def test_facing_cosine_against_a_loop_and_its_gradient():
+    from facenormals.fitting import facing_cosine
+
+    g = torch.Generator().manual_seed(0)
+    points = torch.randn(2, 5, 3, generator=g, dtype=torch.float64) * 50
+    normals = torch.nn.functional.normalize(torch.randn(2, 5, 3, generator=g, dtype=torch.float64), dim=-1)
+    R = euler_to_rotation_matrix(torch.randn(2, 3, generator=g, dtype=torch.float64))
+    ahead = torch.tensor([[0.0, 0.0, 600.0], [10.0, -5.0, 400.0]], dtype=torch.float64)
+    t = torch.einsum("bi,bij->bj", ahead, R)  # R (p + t) lies in front of the camera
+    mask = torch.tensor([[True, True, False, True, True], [False] * 5])
+    expected = []
+    for b in range(2):
+        cosines = []
+        for i in range(5):
+            if mask[b, i]:
+                camera = (R[b] @ (points[b, i] + t[b])).numpy()
+                n = (R[b] @ normals[b, i]).numpy()
+                cosines.append(float(n @ camera / np.linalg.norm(camera)))
+        expected.append(np.mean(cosines) if cosines else 0.0)
+    torch.testing.assert_close(facing_cosine(points, normals, R, t, mask), torch.tensor(expected, dtype=torch.float64))
+    # a point on the optical axis whose normal points back at the camera faces it; turned by 180
+    # degrees about the vertical axis (and moved back in front of the camera), it faces away
+    p, n = torch.zeros(1, 1, 3, dtype=torch.float64), torch.tensor([[[0.0, 0.0, -1.0]]], dtype=torch.float64)
+    ahead = torch.tensor([[0.0, 0.0, 500.0]], dtype=torch.float64)
+    assert float(facing_cosine(p, n, torch.eye(3, dtype=torch.float64)[None], ahead)) == -1.0
+    turned = euler_to_rotation_matrix(torch.tensor([[0.0, 0.0, math.pi]], dtype=torch.float64))
+    assert float(facing_cosine(p, n, turned, ahead @ turned[0])) == pytest.approx(1.0)
+    assert torch.autograd.gradcheck(lambda p, n, tt: facing_cosine(p, n, R, tt, mask),
+                                    (points.requires_grad_(), normals.requires_grad_(), t.requires_grad_()))
+
+
+def test_facing_cosine_checks_its_inputs():
+    from facenormals.fitting import facing_cosine
+
+    p, n, R, t = torch.zeros(1, 2, 3), torch.zeros(1, 2, 3), torch.eye(3)[None], torch.zeros(1, 3)
+    with pytest.raises(ValueError, match=r"normals: expected shape \(B, L, 3\) with L=2 .*got \(1, 3, 3\)"):
+        facing_cosine(p, torch.zeros(1, 3, 3), R, t)
+    with pytest.raises(ValueError, match="translation: expected finite values"):
+        facing_cosine(p, n, R, torch.full((1, 3), float("nan")))
+    with pytest.raises(ValueError, match="mask: expected a bool tensor"):
+        facing_cosine(p, n, R, t, torch.ones(1, 2))
+    with pytest.raises(ValueError, match="normals: expected .*float64"):
+        facing_cosine(p, n.double(), R, t)

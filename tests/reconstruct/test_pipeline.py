@@ -299,6 +299,40 @@ def test_a_view_with_too_few_landmarks_is_named(oracle):
         reconstruct_views(torch.zeros(2, 3, 128, 128), net, model, mirror=False, drop_hidden=False)
 
 
+def test_found_landmarks_fitted_on_a_head_turned_away_are_no_face(oracle):
+    """Landmarks that are seen cannot sit on a head turned away from the camera: spurious peaks in a
+    crop without a face fitted such heads at 130 degrees of yaw and 'converged'. Here the oracle
+    reports every landmark of a head seen from behind, and the fit starts at that pose."""
+    from facenormals.reconstruct import NoFaceError
+
+    model, _, order = oracle
+    views = render_oracle_views(model, model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(6)),
+                                [180.0])
+    R = euler_to_rotation_matrix(views.angles[0])
+    behind, _ = project_points(views.vertices[:, model.landmark_indices], R, views.translation[0], views.intrinsics[0])
+    net = OracleNet(views.normal_maps[0], behind[:, order])
+    with pytest.raises(NoFaceError, match=r"back.jpg: the 24 landmarks the network found fit only a head turned "
+                                          r"away from the camera \(yaw -?180 deg\): is there a face in its crop"):
+        reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                          mirror=False, drop_hidden=False, view_names=["back.jpg"],
+                          initial_pose=(views.angles[0], views.translation[0]))
+
+
+def test_a_black_photo_with_a_face_box_is_no_face(tmp_path):
+    """The shipped network finds a few spurious landmarks in a black crop; the fit put them on the back
+    of a head (yaw 131 deg) and the command wrote it, exit 0."""
+    import cv2
+
+    from facenormals.reconstruct import NoFaceError, reconstruct_photos
+
+    path = tmp_path / "black.png"
+    cv2.imwrite(str(path), np.zeros((512, 512, 3), np.uint8))
+    with pytest.raises(NoFaceError, match="black.png: "):
+        reconstruct_photos([path], tmp_path / "out", model="builtin", boxes=[(200, 200, 100, 100)],
+                           log=lambda message: None)
+    assert not (tmp_path / "out").exists()
+
+
 def test_cli_rejects_a_box_count_mismatch(tmp_path, random_weights):
     result = _cli(tmp_path / "a.jpg", tmp_path / "b.jpg", "-o", tmp_path, "--box", "1,2,3,4",
                   "--weights", random_weights)

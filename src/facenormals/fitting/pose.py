@@ -27,7 +27,7 @@ from facenormals.geometry import (
 )
 from facenormals.optim import LMStatus, levenberg_marquardt
 
-__all__ = ["PoseEstimate", "landmark_pose_jacobian", "prealign_pose"]
+__all__ = ["FACING_AWAY_COSINE", "PoseEstimate", "facing_cosine", "landmark_pose_jacobian", "prealign_pose"]
 
 DEFAULT_YAW_STARTS = (-70.0, -25.0, 25.0, 70.0)
 #: The reweighted solves of :func:`prealign_pose` stop once no landmark weight changes by more than this.
@@ -167,17 +167,58 @@ def _pose_residuals(x: Tensor, points: Tensor, targets: Tensor, mask: Tensor, in
 FACING_AWAY_COSINE = 0.3
 
 
+def facing_cosine(points: Tensor, normals: Tensor, rotation: Tensor, translation: Tensor,
+                  mask: Tensor | None = None) -> Tensor:
+    r"""Mean cosine of the posed outward ``normals`` at ``points`` with the camera rays to them.
+
+    The points are posed as :math:`R\,(p + t)` (see :func:`~facenormals.geometry.transform_points`).
+    Seen surface faces the camera: its cosines are negative (about -0.2 for a profile's landmarks,
+    -0.6 for a frontal face's); a mean above :data:`FACING_AWAY_COSINE` (0.3) means landmarks said to
+    be seen sit on a head turned away from the camera.
+
+    Args:
+        points: model-frame points, e.g. a head's landmark vertices.
+        normals: their outward unit normals, model frame.
+        rotation, translation: the poses.
+        mask: which points count (default: all); a row without any gives 0.
+
+    Shape:
+        - points, normals: :math:`(B, L, 3)`; rotation: :math:`(B, 3, 3)`; translation: :math:`(B, 3)`
+        - mask: :math:`(B, L)` bool; output: :math:`(B,)`
+
+    Example:
+        >>> p = torch.tensor([[[0.0, 0.0, 0.0]]]); n = torch.tensor([[[0.0, 0.0, -1.0]]])
+        >>> facing_cosine(p, n, torch.eye(3)[None], torch.tensor([[0.0, 0.0, 500.0]]))
+        tensor([-1.])
+    """
+    dims = check_shape(points, ["B", "L", 3], "points")
+    check_shape(normals, ["B", "L", 3], "normals", dims)
+    check_shape(rotation, ["B", 3, 3], "rotation", dims)
+    check_shape(translation, ["B", 3], "translation", dims)
+    for name, x in (("points", points), ("normals", normals), ("rotation", rotation), ("translation", translation)):
+        check_floating(x, name)
+        check_finite(x, name)
+    check_same_dtype_device(points, "points", normals=normals, rotation=rotation, translation=translation)
+    if mask is None:
+        mask = torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
+    check_shape(mask, ["B", "L"], "mask", dims)
+    if mask.dtype != torch.bool:
+        raise ValueError(f"mask: expected a bool tensor, got dtype {mask.dtype}")
+    return _facing_cosine(points, normals, rotation, translation, mask)
+
+
+def _facing_cosine(points: Tensor, normals: Tensor, R: Tensor, t: Tensor, mask: Tensor) -> Tensor:
+    camera = transform_points(points, R, t)
+    cosine = (torch.matmul(normals, R.transpose(1, 2)) * camera).sum(-1) / camera.norm(dim=-1).clamp_min(1e-12)
+    return torch.where(mask, cosine, torch.zeros_like(cosine)).sum(1) / mask.sum(1).clamp_min(1)
+
+
 def _facing_camera(x: Tensor, points: Tensor, normals: Tensor | None, mask: Tensor) -> Tensor:
-    """``(B,)`` whether the poses ``x`` do not turn the view's landmarks away from the camera: the mean
-    cosine of their outward ``normals`` with the rays to them is at most ``FACING_AWAY_COSINE``; all
-    True without normals."""
+    """``(B,)`` whether the poses ``x`` do not turn the view's landmarks away from the camera
+    (:func:`facing_cosine` at most ``FACING_AWAY_COSINE``); all True without normals."""
     if normals is None:
         return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
-    R = euler_to_rotation_matrix(x[:, :3])
-    camera = transform_points(points, R, x[:, 3:])
-    cosine = (torch.matmul(normals, R.transpose(1, 2)) * camera).sum(-1) / camera.norm(dim=-1).clamp_min(1e-12)
-    mean = torch.where(mask, cosine, torch.zeros_like(cosine)).sum(1) / mask.sum(1).clamp_min(1)
-    return mean <= FACING_AWAY_COSINE
+    return _facing_cosine(points, normals, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], mask) <= FACING_AWAY_COSINE
 
 
 def _best_candidates(batch: int, owner: Tensor, cost: Tensor, facing: Tensor) -> Tensor:

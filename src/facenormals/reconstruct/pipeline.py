@@ -27,10 +27,12 @@ from torch import Tensor
 from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
 from facenormals.core.files import publish, temporary_beside
 from facenormals.data.landmark_maps import landmarks_from_maps
-from facenormals.fitting import FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks, fit_head
+from facenormals.fitting import (FACING_AWAY_COSINE, FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks,
+                                 facing_cosine, fit_head)
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.geometry import euler_to_rotation_matrix, project_points
+from facenormals.mesh import vertex_normals
 from facenormals.models import LANDMARK_NAMES, MorphableModel
 from facenormals.reconstruct.detect import NoFaceError
 from facenormals.nn.mirror import mirror_averaged
@@ -295,7 +297,9 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
 
     Raises:
         NoFaceError: naming the view when the network finds fewer than 4 of the model's landmarks in
-            it (too few to pre-align: no face, or a crop that misses it).
+            it (too few to pre-align: no face, or a crop that misses it), or when the fit puts the
+            landmarks found on a head turned away from the camera (spurious peaks in a crop without
+            a face).
         ValueError: when ``fit_options`` holds ``intrinsics``.
     """
     if "intrinsics" in fit_options:  # fit_head would get them twice, a TypeError deep inside
@@ -338,6 +342,7 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
         fit.prealignment_rms_px = inputs.prealignment.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
+    _require_facing_heads(fit, model, inputs.landmarks, names, used)
     dropped = inputs.dropped.sum(1).tolist()
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])
@@ -349,6 +354,28 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
                 f"median landmark error {median:.1f} px, {used[v]} landmarks fitted, {dropped[v]} dropped as "
                 f"hidden): check view{v}_overlay.png and view{v}_landmarks.png")
     return maps, fit
+
+
+def _require_facing_heads(fit: FitResult, model: MorphableModel, landmarks: Tensor, names: list[str],
+                          used: list[int]) -> None:
+    """Raise :class:`NoFaceError` naming a view whose found landmarks the fit placed on a head turned
+    away from the camera (:func:`~facenormals.fitting.facing_cosine` above ``FACING_AWAY_COSINE``):
+    landmarks that are seen cannot face away. Spurious peaks in a crop without a face (a wrong
+    ``--box``, a black image) fitted such heads at 130 deg of yaw, "converged"; on held-out renders
+    at any yaw the fitted heads score at most -0.18."""
+    V = landmarks.shape[0]
+    index = model.landmark_indices
+    vertices = fit.vertices.expand(V, -1, -1)
+    normals = vertex_normals(fit.vertices, fit.faces)[:, index].expand(V, -1, -1)
+    R = euler_to_rotation_matrix(fit.angles[0])
+    cosine = facing_cosine(vertices[:, index], normals.to(vertices), R, fit.translation[0],
+                           torch.isfinite(landmarks).all(-1).to(vertices.device))
+    for v in range(V):
+        if float(cosine[v]) > FACING_AWAY_COSINE:
+            yaw = math.degrees(float(fit.angles[0, v, 2]))
+            raise NoFaceError(f"{names[v]}: the {used[v]} landmarks the network found fit only a head turned away "
+                              f"from the camera (yaw {yaw:.0f} deg): is there a face in its crop? (a profile view "
+                              "may need its face box, --box X,Y,W,H)")
 
 
 @dataclass
