@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["atomic_write", "publish", "temporary_beside"]
+__all__ = ["atomic_write", "publish", "publish_together", "temporary_beside"]
 
 #: Suffix of the temporary files (before the target's own suffix, which some writers need).
 PART = ".part"
@@ -69,24 +69,95 @@ def publish(temporary: str | Path, path: str | Path, durable: bool = True) -> Pa
         ``path``.
     """
     temporary, path = Path(temporary), Path(path)
-    os.chmod(temporary, 0o666 & ~_current_umask())
+    _finish(temporary, _current_umask(), durable)
+    os.replace(temporary, path)
+    if durable:
+        _sync_folder(path.parent)
+    return path
+
+
+def _finish(temporary: Path, umask: int, durable: bool) -> None:
+    """Give ``temporary`` a new file's permissions and, if ``durable``, flush its data to disk."""
+    os.chmod(temporary, 0o666 & ~umask)
     if durable:
         handle = os.open(temporary, os.O_RDWR)  # Windows flushes only handles open for writing
         try:
             os.fsync(handle)
         finally:
             os.close(handle)
-    os.replace(temporary, path)
-    if durable and hasattr(os, "O_DIRECTORY"):  # POSIX: make the rename itself durable
+
+
+def _sync_folder(folder: Path) -> None:
+    """POSIX: make the renames in ``folder`` durable."""
+    if not hasattr(os, "O_DIRECTORY"):
+        return
+    try:
+        handle = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
         try:
-            folder = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
-            try:
-                os.fsync(folder)
-            finally:
-                os.close(folder)
-        except OSError:  # some network and FUSE file systems cannot sync a folder; the file is in place
-            pass
-    return path
+            os.fsync(handle)
+        finally:
+            os.close(handle)
+    except OSError:  # some network and FUSE file systems cannot sync a folder; the files are in place
+        pass
+
+
+def publish_together(pairs: list[tuple[Path, Path]], durable: bool = True) -> list[Path]:
+    """Rename finished temporaries over their targets all together or not at all.
+
+    Every temporary is flushed to disk first (where a full disk or an I/O error usually shows); then
+    each existing target is moved to a backup name and its temporary renamed into place. An error or
+    Ctrl-C during the renames puts back every target already replaced (and removes those that are
+    new), so the folder keeps its old set of files, never a mix of old and new ones.
+
+    Args:
+        pairs: ``(temporary, target)`` pairs, each temporary in its target's folder
+            (:func:`temporary_beside`).
+        durable: as :func:`publish`.
+
+    Returns:
+        The targets.
+
+    Example:
+        >>> import tempfile
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> _ = (folder / "a.txt").write_text("old a")
+        >>> pairs = [(temporary_beside(folder / n), folder / n) for n in ("a.txt", "b.txt")]
+        >>> for part, target in pairs:
+        ...     _ = part.write_text("new " + target.stem)
+        >>> [p.name for p in publish_together(pairs)], (folder / "a.txt").read_text()
+        (['a.txt', 'b.txt'], 'new a')
+    """
+    pairs = [(Path(t), Path(p)) for t, p in pairs]
+    umask = _current_umask()
+    for temporary, _ in pairs:
+        _finish(temporary, umask, durable)
+    done: list[tuple[Path, Path | None]] = []  # (target, its backup or None for a new file)
+    try:
+        for temporary, path in pairs:
+            backup = None
+            if path.exists():
+                backup = temporary_beside(path)
+                try:
+                    os.replace(path, backup)
+                except BaseException:
+                    backup.unlink(missing_ok=True)
+                    raise
+            done.append((path, backup))
+            os.replace(temporary, path)
+    except BaseException:
+        for path, backup in reversed(done):
+            if backup is not None:
+                os.replace(backup, path)
+            else:
+                path.unlink(missing_ok=True)
+        raise
+    for _, backup in done:
+        if backup is not None:
+            backup.unlink(missing_ok=True)
+    if durable:
+        for folder in dict.fromkeys(path.parent for _, path in pairs):
+            _sync_folder(folder)
+    return [path for _, path in pairs]
 
 
 @contextmanager

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
-from facenormals.core.files import publish, temporary_beside
+from facenormals.core.files import publish_together, temporary_beside
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import (FACING_AWAY_COSINE, FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks,
                                  facing_cosine, fit_head)
@@ -394,8 +394,9 @@ class Reconstruction:
 
 class _Staged:
     """Files written under unique temporary names in their folder, renamed into place together by
-    :meth:`commit`: a failure before it (an error, a full disk, Ctrl-C) leaves every earlier file as
-    it was, and two runs into one folder never rename each other's half-written files."""
+    :meth:`commit` (:func:`~facenormals.core.files.publish_together`): a failure before or during
+    it (an error, a full disk, Ctrl-C) leaves every earlier file as it was, and two runs into one
+    folder never rename each other's half-written files."""
 
     def __init__(self) -> None:
         self.files: list[tuple[Path, Path]] = []
@@ -418,9 +419,8 @@ class _Staged:
         return self.write(path, write)
 
     def commit(self) -> list[Path]:
-        for tmp, path in self.files:
-            publish(tmp, path)
-        done, self.files = [path for _, path in self.files], []
+        done = publish_together(self.files)  # all or none: an error or Ctrl-C midway puts the old files back
+        self.files = []
         return done
 
     def discard(self) -> None:
