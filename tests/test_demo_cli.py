@@ -9,7 +9,11 @@ from facenormals.models import builtin_head_model
 
 
 def test_demo_recovers_the_builtin_head(tmp_path):
-    report = run_demo(builtin_head_model(), seed=1, out_dir=tmp_path, log=lambda *_: None)
+    import torch
+
+    mine = builtin_head_model(dtype=torch.float64)  # the caller's model: used in float32, left in float64
+    report = run_demo(mine, seed=1, out_dir=tmp_path, log=lambda *_: None)
+    assert mine.mean.dtype == torch.float64
     assert report.fitted_rmse_mm < 0.6 * report.mean_head_rmse_mm
     assert report.fitted_correspondence_mm < report.mean_head_correspondence_mm
     assert report.landmark_error_px < 1.0

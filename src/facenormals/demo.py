@@ -9,6 +9,7 @@ paper's protocol, against the mean head as the baseline.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass
@@ -50,7 +51,8 @@ def run_demo(
 ) -> DemoReport:
     """Run the synthetic recover-a-random-head demo and return its report (see the module docstring)."""
     start = time.perf_counter()
-    model = model.to(torch.float32)
+    if model.mean.dtype != torch.float32:  # .to() converts a module in place: the caller's model stays as it is
+        model = copy.deepcopy(model).to(torch.float32)
     g = torch.Generator().manual_seed(seed)
     y_true = model.sample_shape_coeffs(1, generator=g)
     yaw = float((torch.rand(1, generator=g) * 2 - 1) * 30.0)

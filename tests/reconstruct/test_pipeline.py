@@ -422,8 +422,9 @@ def test_the_example_photo_with_the_builtin_head_stays_frontal():
 
     photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
     mine = builtin_head_model().to(torch.float64)  # a caller's model: used in float32, left as it is
-    rec = reconstruct_photos([photo], None, model=mine, log=lambda message: None)
+    rec = reconstruct_photos(str(photo), None, model=mine, log=lambda message: None)  # one path, not a list
     assert mine.mean.dtype == torch.float64 and rec.model.mean.dtype == torch.float32
+    assert len(rec.views) == 1 and rec.views[0].path == str(photo)
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 2]))) < 20.0
     assert abs(float(torch.rad2deg(rec.fit.angles[0, 0, 1]))) < 25.0
 

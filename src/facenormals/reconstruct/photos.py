@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -102,7 +103,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     naming it and leaves ``out_dir`` untouched.
 
     Args:
-        paths: image files; several give a multi-view fit with one shared shape.
+        paths: image files (or one file); several give a multi-view fit with one shared shape.
         out_dir: output folder (``None``: write nothing).
         model: a :class:`~facenormals.models.MorphableModel` or a spec for
             :func:`~facenormals.models.load_model` (``"auto"``: ICT-FaceKit when installed, else
@@ -119,6 +120,8 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     from facenormals.models import MorphableModel, load_model
     from facenormals.nn import load_weights
 
+    if isinstance(paths, (str, os.PathLike)):  # one photo, not a sequence of one-letter file names
+        paths = [paths]
     if not paths:
         raise ValueError("paths: expected at least one image, got none")
     try:
