@@ -208,7 +208,7 @@ def main(args: argparse.Namespace) -> None:
     timing = interleaved({
         "batch": lambda: ours(batch, torch.float32),
         "one at a time": lambda: [ours(one, torch.float32) for one in elements],
-    }, max(1, args.repeats // 2), warm_up=True)
+    }, max(3, args.repeats // 2), warm_up=True)  # at least 3: the median of 2 runs is their mean
     t_batch, res_b = timing["batch"]
     t_seq, _ = timing["one at a time"]
     iterations = res_b.iterations.float()

@@ -39,7 +39,8 @@ HELP_ONLY = {"network_metrics.py", "visibility_breakdown.py"}
 SMOKE = {
     "accuracy_network.py": (["--heads", "1", "--model", "builtin"], "gl"),
     "accuracy_oracle.py": (["--heads", "1", "--model", "builtin"], None),
-    "bench_fit.py": (["--heads", "1", "--batch", "2", "--repeats", "1", "--model", "builtin", "--threads", "1"], None),
+    "bench_fit.py": (["--heads", "1", "--batch", "2", "--repeats", "1", "--model", "builtin", "--threads", "1",
+                     "--blas-threads", "1"], None),
     "bench_fit_batch.py": (["--device", "cpu", "--batch", "2", "--repeats", "1", "--model", "builtin"], None),
     "bench_lm_head.py": (["--repeats", "1", "--batch", "2", "--model", "builtin"], None),
     "bench_models.py": ([], None),
