@@ -141,10 +141,10 @@ def main(args: argparse.Namespace) -> None:
 
     solvers = interleaved({
         "jacobian_fn": traced("jacobian_fn", lambda record: levenberg_marquardt(
-            record(problem.residuals), x0, jacobian_fn=lambda z: problem.jacobian(z, torch.float32), **options)),
+            record(problem.residuals), x0, jacobian_fn=lambda z: problem.jacobian(z, dtype=torch.float32), **options)),
         "normal_equations_fn": traced("normal_equations_fn", lambda record: levenberg_marquardt(
             record(problem.residuals), x0,
-            normal_equations_fn=lambda z, r: problem.normal_equations(z, r, torch.float32), **options)),
+            normal_equations_fn=lambda z, r: problem.normal_equations(z, r, dtype=torch.float32), **options)),
         "scipy": traced("scipy", lambda record: least_squares(
             record(fun), x0[0].double().numpy(), jac=jac, ftol=1e-8, xtol=1e-8)),
     }, args.repeats)
@@ -167,7 +167,7 @@ def main(args: argparse.Namespace) -> None:
     # Analytic vs autograd Jacobian of the same residuals, each at a new x (the problem caches the
     # geometry of the last x, which the residuals before a Jacobian would have computed).
     fresh = (x0 + 1e-6 * k for k in range(1, 100))
-    analytic_t = statistics.median(timed(lambda: problem.jacobian(next(fresh), torch.float32))[0] for _ in range(5))
+    analytic_t = statistics.median(timed(lambda: problem.jacobian(next(fresh), dtype=torch.float32))[0] for _ in range(5))
     autograd_t = statistics.median(timed(lambda: torch.func.jacfwd(problem.residuals)(next(fresh)))[0]
                                    for _ in range(2))
     rows.append(("Jacobian, analytic (geometry computed too)", analytic_t * 1e3, ""))

@@ -88,6 +88,30 @@ def test_subject_subsets_match_the_full_batch():
         torch.testing.assert_close(g_b, g[index])
 
 
+def test_the_problem_s_methods_are_the_solver_s_callbacks_with_active_subsets():
+    """levenberg_marquardt calls jacobian_fn(x, index) and normal_equations_fn(x, r, index): the index
+    landed in the dtype argument, and a batch of two failed with 'Boolean value of Tensor ...'."""
+    from facenormals.optim import levenberg_marquardt
+
+    problem, x = two_subject_problem()
+    for fns in ({"jacobian_fn": problem.jacobian}, {"normal_equations_fn": problem.normal_equations}):
+        result = levenberg_marquardt(problem.residuals, x, active_subset=True, max_iterations=3, **fns)
+        assert result.x.shape == x.shape and bool(torch.isfinite(result.x).all())
+    assert problem.jacobian(x, dtype=torch.float32).dtype == torch.float32
+
+
+def test_an_in_place_change_of_x_does_not_reach_the_cached_geometry():
+    """The cached geometry held views of the caller's x: after x.add_(), the residuals at the old
+    values mixed the new shape and pose with the old vertices."""
+    problem, x = two_subject_problem()
+    saved = x.clone()
+    expected_r, expected_J = problem.residuals(saved), problem.jacobian(saved)
+    problem.residuals(x)
+    x.add_(0.5)
+    torch.testing.assert_close(problem.residuals(saved), expected_r, rtol=0, atol=0)
+    torch.testing.assert_close(problem.jacobian(saved), expected_J, rtol=0, atol=0)
+
+
 def test_vertex_subset_restricts_the_normal_rows():
     from facenormals.fitting.subsample import grid_subset
 

@@ -344,7 +344,7 @@ def fit_head(
         problem.update_robust_weights(x, robust_scale, landmark_robust_scale)
         result = levenberg_marquardt(
             problem.residuals, x,
-            normal_equations_fn=lambda z, r, index: problem.normal_equations(z, r, jacobian_dtype, index),
+            normal_equations_fn=lambda z, r, index: problem.normal_equations(z, r, index, dtype=jacobian_dtype),
             max_iterations=iterations_per_round, damping=1e-4, ftol=ftol, xtol=1e-7,
             jacobian_dtype=jacobian_dtype, active_subset=True,
         )

@@ -406,6 +406,8 @@ class HeadFitProblem:
         cached, plain = self._cached, _is_plain(x)
         if plain and cached is not None and cached.key == key and cached.x.shape == x.shape and torch.equal(cached.x, x):
             return cached
+        if plain:  # the cached p and t are views of x: a caller's later in-place change must not reach them
+            x = x.clone()
         p, verts, R, t, K = self._views(x, index)
         layout = self._layout(index)
         S = self.vis_index.shape[-1]
@@ -419,7 +421,7 @@ class HeadFitProblem:
         support = self._support if images is None else self._support.index_select(0, images)
         lm = verts[:, None, self.lm_index].expand(-1, self.V, -1, -1).reshape(verts.shape[0] * self.V, self.L, 3)
         lm_uv, _ = project_points(lm, R, t, K)
-        geometry = _Geometry(x.clone(), key, layout, p, verts, R, t, K, face_geometry, n_model, sampled, grad,
+        geometry = _Geometry(x, key, layout, p, verts, R, t, K, face_geometry, n_model, sampled, grad,
                              inside & _foreground_at(support, uv, (self.H, self.W)), lm, lm_uv)
         if plain:
             self._cached = geometry
@@ -504,8 +506,10 @@ class HeadFitProblem:
         small = torch.cat([small, self._pick(self.prior_jacobian, index).to(dtype)], dim=1)
         return shared.view(count, V, 3 * S, C), J_view.to(dtype).view(count, V, 3 * S, pv), small
 
-    def jacobian(self, x: Tensor, dtype: torch.dtype | None = None, index: Tensor | None = None) -> Tensor:
-        """The analytic Jacobian ``(K, M, P)`` of :meth:`residuals`, formed in ``dtype`` (default: x's)."""
+    def jacobian(self, x: Tensor, index: Tensor | None = None, *, dtype: torch.dtype | None = None) -> Tensor:
+        """The analytic Jacobian ``(K, M, P)`` of :meth:`residuals`, formed in ``dtype`` (default: x's).
+
+        ``(x, index)`` is :func:`~facenormals.optim.levenberg_marquardt`'s ``jacobian_fn`` call."""
         dtype = dtype or x.dtype
         shared, J_view, small = self._jacobian_parts(x, dtype, self._all_is_none(index))
         count, V, rows, C, pv = x.shape[0], self.V, shared.shape[2], self.C, self.per_view
@@ -516,8 +520,8 @@ class HeadFitProblem:
         J[:, V * rows :] = small
         return J
 
-    def normal_equations(self, x: Tensor, r: Tensor, dtype: torch.dtype | None = None,
-                         index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def normal_equations(self, x: Tensor, r: Tensor, index: Tensor | None = None, *,
+                         dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
         """``JᵀJ`` ``(K, P, P)`` and ``Jᵀr`` ``(K, P)`` of :meth:`jacobian` and residuals ``r`` ``(K, M)``,
         formed in ``dtype`` without the Jacobian's zero blocks (for
         :func:`~facenormals.optim.levenberg_marquardt`'s ``normal_equations_fn``)."""

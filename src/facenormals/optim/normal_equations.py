@@ -14,8 +14,9 @@ def normal_equations(jacobian: Tensor, residuals: Tensor) -> tuple[Tensor, Tenso
     :func:`~facenormals.optim.levenberg_marquardt` ``normal_equations_fn``.
 
     ``JᵀJ`` is symmetric, so only its upper block rows and its lower-right block are multiplied out
-    (about 3/4 of a full product's work, see ``docs/performance.md``) and the rest is mirrored; the
-    result is exactly symmetric.
+    (about 3/4 of a full product's work, see ``docs/performance.md``) and the rest is mirrored: the
+    off-diagonal blocks are exact mirrors, the two diagonal blocks symmetric to rounding (the
+    solver's Cholesky factorisation reads one triangle).
 
     Args:
         jacobian: ``J``, the derivatives of the residuals with respect to the parameters.
