@@ -179,7 +179,8 @@ def facing_cosine(points: Tensor, normals: Tensor, rotation: Tensor, translation
     Args:
         points: model-frame points, e.g. a head's landmark vertices.
         normals: their outward unit normals, model frame.
-        rotation, translation: the poses.
+        rotation: the poses' rotations.
+        translation: the poses' translations, model frame.
         mask: which points count (default: all); a row without any gives 0.
 
     Shape:
