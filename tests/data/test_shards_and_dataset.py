@@ -21,6 +21,17 @@ def _write(root, count=10, **kwargs):
         pytest.skip(f"no headless OpenGL: {error}")
 
 
+def _copy_with_manifest(dataset_root, tmp_path, **changes):
+    """A copy of the dataset whose manifest has ``changes``."""
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(dataset_root, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    (root / "manifest.json").write_text(json.dumps({**manifest, **changes}))
+    return root
+
+
 @pytest.fixture(scope="module")
 def dataset_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth")
@@ -443,27 +454,13 @@ def test_an_interrupted_extension_can_be_taken_back(dataset_root, tmp_path):
     ("normal_scale", 0, r"normal_scale: expected a finite number > 0, got 0"),
 ])
 def test_a_manifest_with_bad_values_is_named(dataset_root, tmp_path, key, value, match):
-    import json
-    import shutil
-
-    root = tmp_path / "copy"
-    shutil.copytree(dataset_root, root)
-    manifest = json.loads((root / "manifest.json").read_text())
-    manifest[key] = value
-    (root / "manifest.json").write_text(json.dumps(manifest))
+    root = _copy_with_manifest(dataset_root, tmp_path, **{key: value})
     with pytest.raises(ValueError, match="manifest.json: " + match):
         SyntheticHeadDataset(root)
 
 
 def test_a_manifest_whose_image_size_disagrees_with_the_samples_is_named(dataset_root, tmp_path):
-    import json
-    import shutil
-
-    root = tmp_path / "copy"
-    shutil.copytree(dataset_root, root)
-    manifest = json.loads((root / "manifest.json").read_text())
-    manifest["image_size"] //= 2
-    (root / "manifest.json").write_text(json.dumps(manifest))
+    root = _copy_with_manifest(dataset_root, tmp_path, image_size=64)
     with pytest.raises(ValueError, match=r"shard_00000.npz: corrupt shard, cannot read sample 0 .*member image/0000 "
                                          r"has shape \(3, 128, 128\), expected \(3, 64, 64\)"):
         SyntheticHeadDataset(root)[0]
@@ -499,14 +496,9 @@ def test_a_shard_with_a_damaged_compression_method_is_regenerated_and_named(data
 ])
 def test_an_undecodable_manifest_or_version_is_named(dataset_root, tmp_path, text, match):
     """A non-UTF-8 manifest gave a bare UnicodeDecodeError, a null version a TypeError traceback."""
-    import shutil
-
-    root = tmp_path / "copy"
-    shutil.copytree(dataset_root, root)
-    if text.startswith(b"{"):
-        manifest = {**json.loads((root / "manifest.json").read_text()), **json.loads(text)}
-        text = json.dumps(manifest).encode()
-    (root / "manifest.json").write_bytes(text)
+    root = _copy_with_manifest(dataset_root, tmp_path, **(json.loads(text) if text.startswith(b"{") else {}))
+    if not text.startswith(b"{"):
+        (root / "manifest.json").write_bytes(text)
     with pytest.raises(ValueError, match="manifest.json: " + match):
         SyntheticHeadDataset(root)
     with pytest.raises(ValueError, match="manifest.json: " + match):
@@ -515,13 +507,8 @@ def test_an_undecodable_manifest_or_version_is_named(dataset_root, tmp_path, tex
 
 def test_allow_missing_serves_only_complete_shards(dataset_root, tmp_path):
     """A shard of the old count while the manifest already announces an extension failed mid-epoch."""
-    import shutil
-
-    root = tmp_path / "copy"
-    shutil.copytree(dataset_root, root)
-    manifest = json.loads((root / "manifest.json").read_text())
-    manifest["count"] = 16  # what an extending rank publishes first: shard 2 (samples 8, 9) now needs 8..11
-    (root / "manifest.json").write_text(json.dumps(manifest))
+    # what an extending rank publishes first: shard 2 (samples 8, 9) now needs 8..11
+    root = _copy_with_manifest(dataset_root, tmp_path, count=16)
     dataset = SyntheticHeadDataset(root, allow_missing=True)
     assert len(dataset) == 8 and sorted(int(dataset[i]["index"]) for i in range(8)) == list(range(8))
 
