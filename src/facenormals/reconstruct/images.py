@@ -47,17 +47,14 @@ def read_image(path: str | Path) -> np.ndarray:
         data = np.fromfile(path, dtype=np.uint8)  # also works for non-ASCII paths, unlike cv2.imread
     except OSError as error:
         raise ImageReadError(f"{path}: cannot be read ({error.strerror or error})") from None
-    jpeg = data[:3].tobytes() == b"\xff\xd8\xff"
     try:
-        image, warnings = (_decode_with_warnings(data) if jpeg
-                           else (cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None, ""))
+        image, damage = _decode(data)
     except cv2.error as error:  # e.g. a header claiming more pixels than OpenCV accepts
         raise ImageReadError(f"{path}: cannot be decoded ({str(error).strip().splitlines()[-1]})") from None
     if image is None:
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
-    damage = [line for line in warnings.splitlines() if line.startswith(_JPEG_DAMAGE)]
     if damage:
-        raise ImageReadError(f"{path}: corrupt JPEG data ({damage[0].strip()})")
+        raise ImageReadError(f"{path}: corrupt JPEG data ({damage[0]})")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)  # a third of the time of a reversed copy
 
 
@@ -68,23 +65,27 @@ restart markers, a truncated file); its other warnings (an unknown JFIF revision
 _STDERR_LOCK = threading.Lock()
 
 
-def _decode_with_warnings(data: np.ndarray) -> tuple[np.ndarray | None, str]:
-    """``cv2.imdecode`` and what libjpeg printed meanwhile.
+def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
+    """``cv2.imdecode`` (``None`` for no data) and, for a JPEG, libjpeg's warnings about damage.
 
     libjpeg decodes damaged scan data as best it can and only *prints* "Corrupt JPEG data: ..." to
-    the C ``stderr``; OpenCV returns the garbage pixels without an error. File descriptor 2 is
-    redirected to a temporary file for the call (under a lock), and anything else written there
-    meanwhile (e.g. by another thread) is passed on to the real ``stderr``. Damage that leaves valid
-    Huffman codes is invisible to any decoder: JPEG has no checksum.
+    the C ``stderr``; OpenCV returns the garbage pixels without an error. For a JPEG, file
+    descriptor 2 is redirected to a temporary file for the call (under a lock), and anything else
+    written there meanwhile (e.g. by another thread) is passed on to the real ``stderr``. Damage
+    that leaves valid Huffman codes is invisible to any decoder: JPEG has no checksum.
     """
     import cv2
 
+    if not data.size:
+        return None, []
+    if data[:3].tobytes() != b"\xff\xd8\xff":
+        return cv2.imdecode(data, cv2.IMREAD_COLOR), []
     with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
         sys.stderr.flush()
         try:
             saved = os.dup(2)
         except OSError:  # no stderr to redirect (a daemon): decode without the check
-            return cv2.imdecode(data, cv2.IMREAD_COLOR), ""
+            return cv2.imdecode(data, cv2.IMREAD_COLOR), []
         try:
             os.dup2(capture.fileno(), 2)
             image = cv2.imdecode(data, cv2.IMREAD_COLOR)
@@ -92,8 +93,9 @@ def _decode_with_warnings(data: np.ndarray) -> tuple[np.ndarray | None, str]:
             os.dup2(saved, 2)
             os.close(saved)
         capture.seek(0)
-        text = capture.read().decode("utf-8", errors="replace")
-    others = "".join(line for line in text.splitlines(keepends=True) if not line.startswith(_JPEG_DAMAGE))
+        lines = capture.read().decode("utf-8", errors="replace").splitlines(keepends=True)
+    damage = [line.strip() for line in lines if line.startswith(_JPEG_DAMAGE)]
+    others = "".join(line for line in lines if not line.startswith(_JPEG_DAMAGE))
     if others:
         sys.stderr.write(others)
-    return image, text
+    return image, damage

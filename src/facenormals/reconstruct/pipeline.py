@@ -363,13 +363,11 @@ def _require_facing_heads(fit: FitResult, model: MorphableModel, landmarks: Tens
     landmarks that are seen cannot face away. Spurious peaks in a crop without a face (a wrong
     ``--box``, a black image) fitted such heads at 130 deg of yaw, "converged"; on held-out renders
     at any yaw the fitted heads score at most -0.18."""
-    V = landmarks.shape[0]
-    index = model.landmark_indices
-    vertices = fit.vertices.expand(V, -1, -1)
+    V, index = landmarks.shape[0], model.landmark_indices
+    points = fit.vertices[:, index].expand(V, -1, -1)
     normals = vertex_normals(fit.vertices, fit.faces)[:, index].expand(V, -1, -1)
-    R = euler_to_rotation_matrix(fit.angles[0])
-    cosine = facing_cosine(vertices[:, index], normals.to(vertices), R, fit.translation[0],
-                           torch.isfinite(landmarks).all(-1).to(vertices.device))
+    cosine = facing_cosine(points, normals, euler_to_rotation_matrix(fit.angles[0]), fit.translation[0],
+                           torch.isfinite(landmarks).all(-1).to(points.device))
     for v in range(V):
         if float(cosine[v]) > FACING_AWAY_COSINE:
             yaw = math.degrees(float(fit.angles[0, v, 2]))
