@@ -67,6 +67,47 @@ def test_pose_jacobian_matches_autograd():
     torch.testing.assert_close(landmark_pose_jacobian(points, x, K)[0], torch.func.jacfwd(project)(x[0]))
 
 
+def test_pose_jacobian_matches_autograd_per_view_with_mask():
+    # several views at once (profiles and a pitched view), a mask, views with their own intrinsics
+    g = torch.Generator().manual_seed(3)
+    points = torch.randn(3, 7, 3, generator=g, dtype=torch.float64) * 60
+    x = torch.tensor([[0.3, -0.5, 1.5, 4.0, -2.0, 700.0], [-0.2, 0.6, -1.57, 0.0, 9.0, 550.0],
+                      [2.5, 0.1, 3.0, -8.0, 1.0, 800.0]], dtype=torch.float64)
+    K = torch.tensor([[400.0, 63.5, 63.5], [900.0, 60.0, 70.0], [300.0, 10.0, 100.0]], dtype=torch.float64)
+    mask = torch.rand(3, 7, generator=g) > 0.3
+
+    def project(z, b):
+        uv, _ = project_points(points[b:b + 1], euler_to_rotation_matrix(z[None, :3]), z[None, 3:], K[b:b + 1])
+        return (uv * mask[b, :, None]).reshape(-1)
+
+    J = landmark_pose_jacobian(points, x, K, mask)
+    for b in range(3):
+        torch.testing.assert_close(J[b], torch.func.jacfwd(lambda z: project(z, b))(x[b]))
+
+
+def test_weighted_landmark_terms_jacobian_is_that_of_their_residuals():
+    # the pre-alignment's LM terms share the camera geometry between residuals and Jacobian: the
+    # Jacobian at another pose than the last residuals' must not reuse it
+    from facenormals.fitting.pose import _LandmarkTerms
+
+    g = torch.Generator().manual_seed(4)
+    points = torch.randn(2, 6, 3, generator=g, dtype=torch.float64) * 60
+    targets = torch.rand(2, 6, 2, generator=g, dtype=torch.float64) * 128
+    targets[1, 2] = float("nan")  # masked landmarks may be NaN
+    mask = torch.ones(2, 6, dtype=torch.bool)
+    mask[1, 2] = False
+    K = torch.tensor([[400.0, 63.5, 63.5], [500.0, 64.0, 60.0]], dtype=torch.float64)
+    terms = _LandmarkTerms(points, targets, mask, K, torch.rand(2, 6, 1, generator=g, dtype=torch.float64))
+    x1 = torch.tensor([[0.1, 0.2, -0.4, 5.0, -3.0, 640.0], [0.0, -0.3, 1.2, 1.0, 2.0, 700.0]], dtype=torch.float64)
+    x2 = x1 + 0.05
+    for x in (x1, x2):
+        reference = torch.func.jacfwd(lambda z: _LandmarkTerms(points, targets, mask, K, terms.sqrt_weights)
+                                      .residuals(z).sum(0))(x).transpose(0, 1)
+        terms.residuals(x1)
+        torch.testing.assert_close(terms.jacobian(x), reference)
+        assert torch.isfinite(terms.residuals(x)).all()
+
+
 def test_too_few_landmarks_names_the_view():
     model = builtin_head_model(dtype=torch.float64)
     uv, _, _, K = observe(model, 0.0)

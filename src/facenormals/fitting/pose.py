@@ -15,16 +15,9 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape, check_tensor
-from facenormals.energy.residuals import _landmark_differences
 from facenormals.fitting.robust import cauchy_weights, check_scale
-from facenormals.geometry import (
-    euler_rotation_derivatives,
-    euler_to_rotation_matrix,
-    project_points,
-    projection_jacobian,
-    rotation_matrix_to_euler,
-    transform_points,
-)
+from facenormals.geometry import euler_to_rotation_matrix, rotation_matrix_to_euler
+from facenormals.geometry.rotation import _rotation
 from facenormals.optim import LMStatus, levenberg_marquardt
 
 __all__ = ["FACING_AWAY_COSINE", "PoseEstimate", "facing_cosine", "landmark_pose_jacobian", "prealign_pose"]
@@ -89,17 +82,85 @@ def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: 
         check_shape(mask, ["B", "L"], "mask", dims)
         if mask.dtype != torch.bool:
             raise ValueError(f"mask: expected a bool tensor, got dtype {mask.dtype}")
-    R = euler_to_rotation_matrix(x[:, :3])
-    D = euler_rotation_derivatives(x[:, :3])  # (B, 3, 3, 3)
-    q = points + x[:, None, 3:]
-    P = projection_jacobian(q @ R.transpose(1, 2), intrinsics)  # (B, L, 2, 3)
-    DQ = torch.einsum("bjkl,bnl->bnkj", D, q)  # (B, L, 3, 3): column j is D_j (p + t)
-    d_angles = (P.unsqueeze(-1) * DQ.unsqueeze(-3)).sum(-2)  # P @ DQ without tiny batched matmuls
-    d_t = (P.unsqueeze(-1) * R[:, None, None]).sum(-2)
-    J = torch.cat([d_angles, d_t], dim=-1)  # (B, L, 2, 6)
+    return _pose_jacobian(x, points, intrinsics, mask)
+
+
+def _pose_camera(x: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
+    """``R`` ``(B, 3, 3)`` and the camera points ``R (p + t)`` ``(B, L, 3)`` of the poses ``x``."""
+    R = _rotation(x[:, :3])
+    return R, torch.matmul(points + x[:, None, 3:], R.transpose(1, 2))
+
+
+def _safe_depth(z: Tensor) -> Tensor:
+    """Depths clamped away from zero as :func:`~facenormals.geometry.project_points` does (eps 1e-9)."""
+    eps = torch.full_like(z, 1e-9)
+    return torch.where(z.abs() < eps, torch.where(z < 0, -eps, eps), z)
+
+
+def _pose_jacobian(x: Tensor, points: Tensor, intrinsics: Tensor, mask: Tensor | None) -> Tensor:
+    """:func:`landmark_pose_jacobian` without its input checks."""
+    R, camera = _pose_camera(x, points)
+    return _jacobian_at(x, R, camera, _safe_depth(camera[..., 2]), intrinsics, mask)
+
+
+def _jacobian_at(x: Tensor, R: Tensor, camera: Tensor, z: Tensor, intrinsics: Tensor, mask: Tensor | None) -> Tensor:
+    """The pose Jacobian ``(B, 2L, 6)`` from the camera points ``camera`` of ``x`` and their safe depths ``z``.
+
+    The Euler rotations' derivatives (``euler_rotation_derivatives``) move a camera point by
+    :math:`\omega_j \times X_c` about the axes :math:`\omega = (R e_z, R_y e_x, e_y)` (roll, pitch,
+    yaw), and :math:`\partial X_c / \partial t = R`."""
+    cx, cy, cz = camera.unbind(-1)
+    zero = torch.zeros_like(cx)
+    d_roll = torch.linalg.cross(R[:, None, :, 2].expand_as(camera), camera)
+    cos_yaw, sin_yaw = torch.cos(x[:, 2:3]), torch.sin(x[:, 2:3])
+    d_pitch = torch.stack([sin_yaw * cy, -sin_yaw * cx - cos_yaw * cz, cos_yaw * cy], dim=-1)
+    d_yaw = torch.stack([cz, zero, -cx], dim=-1)
+    # (B, L, 3, 6): d X_c[k] / d x[j]
+    d_camera = torch.cat([torch.stack([d_roll, d_pitch, d_yaw], dim=-1), R[:, None].expand(-1, cx.shape[1], 3, 3)],
+                         dim=-1)
+    ratio = (camera[..., :2] / z[..., None])[..., None]  # (B, L, 2, 1)
+    J = (intrinsics[:, None, 0] / z)[..., None, None] * (d_camera[..., :2, :] - ratio * d_camera[..., 2:3, :])
     if mask is not None:
-        J = J * mask[..., None, None].to(J.dtype)
+        J = torch.where(mask[..., None, None], J, torch.zeros((), dtype=J.dtype, device=J.device))
     return J.reshape(J.shape[0], -1, 6)
+
+
+class _LandmarkTerms:
+    """Residuals ``(B, 2L)`` and Jacobian ``(B, 2L, 6)`` of the pose LM, optionally weighted per landmark,
+    without input checks (:func:`prealign_pose` checked them once). The LM asks for the Jacobian at the
+    trial point whose residuals it evaluated last, so the two share that point's camera geometry."""
+
+    def __init__(self, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor,
+                 sqrt_weights: Tensor | None = None) -> None:
+        self.points, self.targets, self.mask, self.intrinsics = points, targets, mask, intrinsics
+        self.sqrt_weights = sqrt_weights  # (B, L, 1) or None
+        self._x: Tensor | None = None
+        self._geometry: tuple[Tensor, Tensor, Tensor] = ()  # type: ignore[assignment]
+
+    def geometry(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if self._x is None or not torch.equal(x, self._x):
+            R, camera = _pose_camera(x, self.points)
+            self._x, self._geometry = x, (R, camera, _safe_depth(camera[..., 2]))
+        return self._geometry
+
+    def residuals(self, x: Tensor) -> Tensor:
+        _, camera, z = self.geometry(x)
+        pixels = self.intrinsics[:, None, 0:1] * camera[..., :2] / z[..., None] + self.intrinsics[:, None, 1:]
+        r = torch.where(self.mask[..., None], pixels - self.targets, torch.zeros((), dtype=x.dtype, device=x.device))
+        return (r if self.sqrt_weights is None else r * self.sqrt_weights).flatten(1)
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        R, camera, z = self.geometry(x)
+        J = _jacobian_at(x, R, camera, z, self.intrinsics, self.mask)
+        if self.sqrt_weights is not None:
+            J = (J.view(J.shape[0], -1, 2, 6) * self.sqrt_weights[..., None]).flatten(1, 2)
+        return J
+
+
+def _solve_pose(terms: _LandmarkTerms, x0: Tensor, max_iterations: int):
+    """The pre-alignment's LM on ``terms`` from ``x0`` ``(B, 6)``."""
+    return levenberg_marquardt(terms.residuals, x0, jacobian_fn=terms.jacobian, max_iterations=max_iterations,
+                               damping=1e-4, ftol=1e-7, xtol=1e-7)
 
 
 def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tensor, intrinsics: Tensor) -> Tensor:
@@ -156,9 +217,8 @@ def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tenso
 
 
 def _pose_residuals(x: Tensor, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> Tensor:
-    """``(B, L, 2)`` landmark residuals of the poses ``x`` (zero where masked)."""
-    uv, _ = project_points(points, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], intrinsics)
-    return _landmark_differences(uv, targets, mask)  # the inputs were checked by prealign_pose
+    """``(B, L, 2)`` landmark residuals of the poses ``x`` (zero where masked), without input checks."""
+    return _LandmarkTerms(points, targets, mask, intrinsics).residuals(x).view(x.shape[0], -1, 2)
 
 
 #: A pose whose landmarks' normals make a mean cosine above this with the rays to them faces away
@@ -209,7 +269,7 @@ def facing_cosine(points: Tensor, normals: Tensor, rotation: Tensor, translation
 
 
 def _facing_cosine(points: Tensor, normals: Tensor, R: Tensor, t: Tensor, mask: Tensor) -> Tensor:
-    camera = transform_points(points, R, t)
+    camera = torch.matmul(points + t[:, None], R.transpose(1, 2))  # transform_points, inputs checked
     cosine = (torch.matmul(normals, R.transpose(1, 2)) * camera).sum(-1) / camera.norm(dim=-1).clamp_min(1e-12)
     return torch.where(mask, cosine, torch.zeros_like(cosine)).sum(1) / mask.sum(1).clamp_min(1)
 
@@ -219,7 +279,7 @@ def _facing_camera(x: Tensor, points: Tensor, normals: Tensor | None, mask: Tens
     (:func:`facing_cosine` at most ``FACING_AWAY_COSINE``); all True without normals."""
     if normals is None:
         return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
-    return _facing_cosine(points, normals, euler_to_rotation_matrix(x[:, :3]), x[:, 3:], mask) <= FACING_AWAY_COSINE
+    return _facing_cosine(points, normals, _rotation(x[:, :3]), x[:, 3:], mask) <= FACING_AWAY_COSINE
 
 
 def _best_candidates(batch: int, owner: Tensor, cost: Tensor, facing: Tensor) -> Tensor:
@@ -258,12 +318,7 @@ def _robust_solve(x: Tensor, status: Tensor, points: Tensor, targets: Tensor, ma
             break  # converged: the weights each last solve used are those of its solution
         i = active.nonzero().squeeze(1)
         previous, sqrt_w = weights, weights[i].sqrt()[..., None]
-        weighted = levenberg_marquardt(
-            lambda z, w=sqrt_w, i=i: (_pose_residuals(z, P[i], b[i], m[i], K[i]) * w).flatten(1), x[i],
-            jacobian_fn=lambda z, w=sqrt_w, i=i: (landmark_pose_jacobian(P[i], z, K[i], m[i])
-                                                  .view(i.shape[0], -1, 2, 6) * w[..., None]).flatten(1, 2),
-            max_iterations=max_iterations, damping=1e-4, ftol=1e-7, xtol=1e-7,
-        )
+        weighted = _solve_pose(_LandmarkTerms(P[i], b[i], m[i], K[i], sqrt_w), x[i], max_iterations)
         x, status = x.index_copy(0, i, weighted.x), status.index_copy(0, i, weighted.status)
     error = _pose_residuals(x, P, b, m, K).norm(dim=-1)
     cost = torch.where(m, torch.log1p((error / scale).square()), torch.zeros_like(error)).sum(-1)
@@ -341,6 +396,7 @@ def prealign_pose(
         - intrinsics: :math:`(B, 3)`; mask: :math:`(B, L)`; model_normals: as ``model_points``
 
     Example:
+        >>> from facenormals.geometry import project_points
         >>> pts = torch.randn(1, 10, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 50
         >>> R = euler_to_rotation_matrix(torch.tensor([[0.1, -0.2, 1.2]], dtype=torch.float64))
         >>> K = torch.tensor([[500.0, 64, 64]], dtype=torch.float64)
@@ -409,15 +465,7 @@ def prealign_pose(
 
     def solve(owner: Tensor, x0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         pts, targets, msk, K = model_points[owner], landmarks[owner], mask[owner], intrinsics[owner]
-        result = levenberg_marquardt(
-            lambda x: _pose_residuals(x, pts, targets, msk, K).flatten(1),
-            x0,
-            jacobian_fn=lambda x: landmark_pose_jacobian(pts, x, K, msk),
-            max_iterations=max_iterations,
-            damping=1e-4,
-            ftol=1e-7,
-            xtol=1e-7,
-        )
+        result = _solve_pose(_LandmarkTerms(pts, targets, msk, K), x0, max_iterations)
         # a failed start costs the largest finite value (a view whose starts all failed keeps its first)
         cost = torch.where(result.status == LMStatus.FAILED, torch.finfo(dtype).max, result.cost)
         return result.x, result.status, cost

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_integer, check_nonnegative, check_positive, check_shape
-from facenormals.optim.normal_equations import normal_equations as normal_equations_of
+from facenormals.optim.normal_equations import gram
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
 
@@ -409,9 +409,9 @@ def _solve(
             # M cotangents through the batch-summed residuals: (M, B, P) -> (B, M, P).
             jac = torch.func.jacrev(lambda z: fn(z).sum(0), chunk_size=chunk_size)(x_)
             jac = jac.permute(1, 0, 2)
-        jac = jac.to(jacobian_dtype)
-        hessian, gradient = normal_equations_of(jac, r_.to(jacobian_dtype))
-        return hessian.to(dtype), gradient.to(dtype)
+        jac = jac.to(jacobian_dtype)  # its shape, dtype and device are checked
+        gradient = (r_.to(jacobian_dtype).unsqueeze(1) @ jac).squeeze(1)  # rᵀJ: reads J in its own layout
+        return gram(jac).to(dtype), gradient.to(dtype)
 
     def half_sq(r_: Tensor) -> Tensor:
         return 0.5 * r_.square().sum(-1)
@@ -419,11 +419,16 @@ def _solve(
     code = torch.zeros(B, dtype=torch.long, device=device)
     edge = torch.zeros(B, dtype=torch.bool, device=device)  # rejected for non-finite residuals since the last accepted step
 
-    def stop(active_: Tensor, mask: Tensor, reason: int) -> Tensor:
-        """Record ``reason`` for active elements in ``mask``; return the new active mask."""
+    def stop(active_: Tensor, *tests: tuple[Tensor, int]) -> Tensor:
+        """Record for each active element the reason of the first of the ``(mask, reason)`` tests
+        that holds for it; return the new active mask."""
         nonlocal code
-        hit = active_ & mask
-        code = torch.where(hit, reason, code)
+        mask, reason = tests[-1]
+        first = torch.where(mask, reason, 0)
+        for mask, reason in reversed(tests[:-1]):
+            first = torch.where(mask, reason, first)
+        hit = active_ & (first > 0)
+        code = torch.where(hit, first, code)
         return active_ & ~hit
 
     r = residuals(x, everyone)
@@ -442,8 +447,7 @@ def _solve(
 
     H, g = normal_equations(x, r, everyone)
     finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
-    active = stop(active, ~finite_jac, _BAD_JACOBIAN)
-    active = stop(active, g.abs().amax(-1) <= gtol, _GTOL)
+    active = stop(active, (~finite_jac, _BAD_JACOBIAN), (g.abs().amax(-1) <= gtol, _GTOL))
     # Marquardt scaling: the running maximum of diag(JᵀJ) over the accepted points (Moré 1978).
     diag_max = H.diagonal(dim1=-2, dim2=-1).clone()
 
@@ -467,9 +471,8 @@ def _solve(
         step = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
         # L(0) - L(δ) = ½ δᵀ(λDδ - g) for the exact solution of the damped system.
         pred = 0.5 * ((lam_d * step.square()).sum(-1) + (step * rhs).sum(-1))
-        bad_chol = active & (info != 0)
-        if bool(bad_chol.any()):
-            idx = bad_chol.nonzero().squeeze(1)
+        if bool(info.any()):  # inactive elements solve I δ = 0, which always factorises
+            idx = (active & (info != 0)).nonzero().squeeze(1)
             A_bad, rhs_bad, H_bad = A[idx], rhs[idx], H[idx]
             try:
                 step_bad = torch.matmul(torch.linalg.pinv(A_bad, hermitian=True), rhs_bad.unsqueeze(-1))
@@ -485,7 +488,8 @@ def _solve(
 
         # A non-finite step is rejected below; the residuals are evaluated at x instead, so that
         # residual functions that check their inputs (the library's ops do) never see NaN.
-        x_trial = torch.where(torch.isfinite(step).all(-1, keepdim=True), x + step, x)
+        finite_step = torch.isfinite(step).all(-1)
+        x_trial = torch.where(finite_step[:, None], x + step, x)
         if active_subset:  # the others keep their residuals (their trial is discarded anyway)
             index = active.nonzero().squeeze(1)
             r_trial = r.index_copy(0, index, residuals(x_trial, index))
@@ -493,7 +497,7 @@ def _solve(
             r_trial = residuals(x_trial, everyone)
         cost_trial = half_sq(r_trial)
         actual = cost - cost_trial
-        trial_ok = torch.isfinite(cost_trial) & torch.isfinite(step).all(-1) & torch.isfinite(pred)
+        trial_ok = torch.isfinite(cost_trial) & finite_step & torch.isfinite(pred)
         rho = torch.where(trial_ok, actual / pred.clamp_min(info_.tiny), -math.inf)
         accepted = active & trial_ok & (rho > 0)
         rejected = active & ~accepted
@@ -502,7 +506,7 @@ def _solve(
         # A step shrunk to nothing by rejections at the edge of the residuals' domain (non-finite
         # trials since the last accepted step) shows no minimum: that is reported as blocked.
         edge = torch.where(accepted, False, edge | (active & ~trial_ok))
-        small_step = step.norm(dim=-1) <= xtol * (x.norm(dim=-1) + xtol)
+        small_step = torch.linalg.vector_norm(step, dim=-1) <= xtol * (torch.linalg.vector_norm(x, dim=-1) + xtol)
         no_move = (x_trial == x).all(-1)
         small_reduction = accepted & (actual <= ftol * cost) & (rho > 0.25)
         # MINPACK (lmder): predicted and actual relative changes both within ftol, rho <= 2.
@@ -519,13 +523,9 @@ def _solve(
         lam = torch.where(rejected, lam.clamp_min(min_damping) * nu, lam)
         nu = torch.where(accepted, 2.0, torch.where(rejected, 2.0 * nu, nu))
 
-        active = stop(active, (small_step | no_move) & edge, _BLOCKED)
-        active = stop(active, small_step, _XTOL)
-        active = stop(active, no_move, _RESOLUTION)
-        active = stop(active, small_reduction, _FTOL)
         runaway = rejected & ~(lam <= max_damping)
-        active = stop(active, runaway & edge, _BLOCKED)
-        active = stop(active, runaway, _DAMPING)
+        active = stop(active, ((small_step | no_move) & edge, _BLOCKED), (small_step, _XTOL), (no_move, _RESOLUTION),
+                      (small_reduction, _FTOL), (runaway & edge, _BLOCKED), (runaway, _DAMPING))
 
         need_jacobian = accepted & active
         flags = torch.stack([need_jacobian.any(), active.any()]).tolist()
@@ -540,8 +540,8 @@ def _solve(
                 g = torch.where(need_jacobian[:, None], g_new, g)
             diag_max = torch.maximum(diag_max, H.diagonal(dim1=-2, dim2=-1))
             finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
-            active = stop(active, need_jacobian & ~finite_jac, _BAD_JACOBIAN)
-            active = stop(active, need_jacobian & (g.abs().amax(-1) <= gtol), _GTOL)
+            active = stop(active, (need_jacobian & ~finite_jac, _BAD_JACOBIAN),
+                          (need_jacobian & (g.abs().amax(-1) <= gtol), _GTOL))
             flags[1] = bool(active.any())
         any_active = flags[1]
         if verbose:
