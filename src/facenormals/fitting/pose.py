@@ -104,7 +104,7 @@ def _pose_jacobian(x: Tensor, points: Tensor, intrinsics: Tensor, mask: Tensor |
 
 
 def _jacobian_at(x: Tensor, R: Tensor, camera: Tensor, z: Tensor, intrinsics: Tensor, mask: Tensor | None) -> Tensor:
-    """The pose Jacobian ``(B, 2L, 6)`` from the camera points ``camera`` of ``x`` and their safe depths ``z``.
+    r"""The pose Jacobian ``(B, 2L, 6)`` from the camera points ``camera`` of ``x`` and their safe depths ``z``.
 
     The Euler rotations' derivatives (``euler_rotation_derivatives``) move a camera point by
     :math:`\omega_j \times X_c` about the axes :math:`\omega = (R e_z, R_y e_x, e_y)` (roll, pitch,
