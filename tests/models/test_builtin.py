@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 import trimesh
 
@@ -79,3 +80,17 @@ def test_icosphere_is_trimeshs_vertex_for_vertex_without_importing_it():
             "print('trimesh' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_built_models_do_not_share_the_cached_arrays():
+    """float64 models were built with torch.from_numpy(...).to(float64), which does not copy: editing
+    one model's buffers in place changed every built-in model built after it."""
+    first = builtin_head_model(dtype=torch.float64)
+    std, mean = builtin_head_model().shape_std.clone(), builtin_head_model().mean.clone()
+    first.shape_std.mul_(2.0)
+    first.mean.mul_(0.001)
+    first.faces[0] = 0
+    again = builtin_head_model()
+    assert torch.equal(again.shape_std, std) and torch.equal(again.mean, mean)
+    with pytest.raises(ValueError, match="dtype: expected a floating-point torch dtype, got torch.int32"):
+        builtin_head_model(dtype=torch.int32)

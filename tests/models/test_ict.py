@@ -280,10 +280,20 @@ def test_the_shared_archive_is_the_release(ict_npz):
 
 def test_fetch_force_rebuilds(ict_raw, tmp_path):
     archive = fetch_ict(ict_raw, cache=tmp_path, progress=None)  # the FaceXModel folder itself
-    archive.write_bytes(b"stale")
-    assert fetch_ict(ict_raw, cache=tmp_path, progress=None) == archive and archive.read_bytes() == b"stale"
-    fetch_ict(ict_raw, cache=tmp_path, progress=None, force=True)
-    assert load_ict_npz(archive).num_vertices == 11248
+    good = archive.read_bytes()
+    with np.load(archive) as data:
+        arrays = {key: data[key] for key in data.files}
+    np.savez(archive, **{**arrays, "mean": arrays["mean"] + 1.0})  # a different but readable archive is kept ...
+    changed = archive.read_bytes()
+    assert fetch_ict(ict_raw, cache=tmp_path, progress=None) == archive and archive.read_bytes() == changed
+    fetch_ict(ict_raw, cache=tmp_path, progress=None, force=True)  # ... unless forced
+    assert archive.read_bytes() == good and load_ict_npz(archive).num_vertices == 11248
+    # a damaged one (a truncated copy, or not an archive) is converted again without --force, and says so
+    for damaged in (good[: len(good) // 2], b"stale"):
+        archive.write_bytes(damaged)
+        lines = []
+        assert fetch_ict(ict_raw, cache=tmp_path, progress=lines.append) == archive and archive.read_bytes() == good
+        assert lines[0].startswith(f"{archive} is damaged (BadZipFile") and lines[0].endswith("converting it again")
     # a cached archive: a given source is not converted, and says so; a missing one is an error
     lines = []
     assert fetch_ict(ict_raw, cache=tmp_path, progress=lines.append) == archive

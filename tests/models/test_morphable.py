@@ -317,3 +317,52 @@ def test_with_annotations_warns_about_names_the_network_does_not_know():
     assert "['nose-tip'] are not among the network's LANDMARK_NAMES" in messages
     assert "no 'nose_tip', so the face region scored by evaluation stays the model's own (10242 of 10242" in messages
     assert bool(model.face_region.all())
+
+
+def test_derived_data_follow_replaced_buffers():
+    """The cache of basis_matrix() was keyed by id(): a new buffer allocated where a freed one had
+    been (same id, version 0) got the freed one's cached matrix."""
+    model = tiny_model()
+    for step in range(20):
+        model.basis_matrix()
+        model.shape_basis = model.shape_basis * 1.5  # the old buffer is freed ...
+        model.shape_basis = model.shape_basis + 1.0  # ... and its memory (and id) may be reused
+        assert torch.equal(model.basis_matrix()[:, 0], model.shape_basis[0].reshape(-1)), step
+    normals = model.landmark_normals()
+    model.mean = model.mean.flip(0)
+    assert not torch.equal(model.landmark_normals(), normals)
+
+
+def test_a_model_pickles_and_moves_without_its_derived_cache():
+    import pickle
+
+    model = tiny_model()
+    model.basis_matrix()
+    copy = pickle.loads(pickle.dumps(model))
+    assert "_derived_cache" not in copy.__dict__ and torch.equal(copy.basis_matrix(), model.basis_matrix())
+    moved = model.to(torch.float32)
+    assert "_derived_cache" not in moved.__dict__ and moved.basis_matrix().dtype == torch.float32
+
+
+def test_annotations_load_and_matrices_check_their_arguments(tmp_path):
+    from facenormals.models import builtin_head_model
+
+    head = builtin_head_model()
+    bare = MorphableModel(head.mean, head.shape_basis, head.faces, shape_std=head.shape_std)
+    with pytest.raises(ValueError, match=r"landmarks: index 99999 of 'nose_tip' is outside \[0, 10242\)"):
+        bare.with_annotations({**head.landmarks, "nose_tip": 99999})
+    for radius in (-5.0, float("nan"), "95"):  # an empty face region would score nothing
+        with pytest.raises(ValueError, match="radius: expected a (finite|real) number"):
+            bare.with_annotations(head.landmarks, radius=radius)
+    with pytest.raises(ValueError, match="dtype: expected a floating-point torch dtype, got torch.int64"):
+        bare.basis_matrix(dtype=torch.int64)
+    with pytest.raises(ValueError, match=r"shape_coeffs: expected shape \(24,\) or \(1, 24\), got \(2, 12\)"):
+        bare.export_mesh(tmp_path / "head.ply", torch.zeros(2, 12))
+    model = tiny_model()
+    model.save(tmp_path / "m.npz")
+    arrays = dict(np.load(tmp_path / "m.npz"))
+    for change, match in (({"face_region": np.arange(5) % 3}, "array 'face_region' has dtype int64, expected bool"),
+                          ({"version": np.array(0)}, "format version 0, expected 1 to")):
+        np.savez(tmp_path / "bad.npz", **{**arrays, **change})
+        with pytest.raises(ModelFileError, match=f"bad.npz: {match}"):
+            MorphableModel.load(tmp_path / "bad.npz")

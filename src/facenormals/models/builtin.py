@@ -17,7 +17,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from facenormals.models.morphable import FACE_CROP_RADIUS_MM, MorphableModel
+from facenormals.models.morphable import FACE_CROP_RADIUS_MM, MorphableModel, check_model_dtype
 
 __all__ = ["BUILTIN_PARAMETERS", "builtin_head_model", "builtin_head_surface"]
 
@@ -221,12 +221,13 @@ def builtin_head_model(dtype: torch.dtype = torch.float32) -> MorphableModel:
     """
     from facenormals.models.landmarks import builtin_landmark_indices
 
+    check_model_dtype(dtype)
     directions, faces, mean, basis, std = _build()
-    return MorphableModel(
-        torch.from_numpy(mean).to(dtype),
-        torch.from_numpy(basis).to(dtype),
-        torch.from_numpy(faces),
-        shape_std=torch.from_numpy(std).to(dtype),
+    return MorphableModel(  # copies: the cached arrays must not become the buffers a caller may edit
+        torch.tensor(mean, dtype=dtype),
+        torch.tensor(basis, dtype=dtype),
+        torch.tensor(faces),
+        shape_std=torch.tensor(std, dtype=dtype),
         landmarks=builtin_landmark_indices(mean, BUILTIN_PARAMETERS),
         name="builtin",
         metadata={

@@ -20,8 +20,8 @@ from urllib.parse import urlparse
 import numpy as np
 
 from facenormals.core.files import atomic_write
-from facenormals.models.ict import ICT_FULL_EXPRESSIONS, ICT_FULL_IDENTITIES, ict_npz_from_raw
-from facenormals.models.morphable import ModelFileError
+from facenormals.models.ict import ICT_FULL_EXPRESSIONS, ICT_FULL_IDENTITIES, ICT_KEYS, ict_npz_from_raw
+from facenormals.models.morphable import NPZ_READ_ERRORS, ModelFileError
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
 
 __all__ = ["ICT_URL", "FetchError", "fetch_ict", "ict_release_differences"]
@@ -101,14 +101,34 @@ def ict_release_differences(archive: str | Path) -> list[str]:
         []
     """
     differences = []
-    with np.load(archive, allow_pickle=False) as data:
-        for key, digest in ICT_RELEASE_SHA256.items():
-            array = np.ascontiguousarray(data[key])
-            if key in _COMPLETE_MODES and array.shape[0] != _COMPLETE_MODES[key]:
-                continue
-            if hashlib.sha256(array.tobytes()).hexdigest() != digest:
-                differences.append(key)
+    try:
+        with np.load(archive, allow_pickle=False) as data:
+            missing = [key for key in ICT_RELEASE_SHA256 if key not in data.files]
+            if missing:
+                raise ModelFileError(f"{archive}: not an ICT-FaceKit archive, missing arrays {missing}")
+            for key, digest in ICT_RELEASE_SHA256.items():
+                array = np.ascontiguousarray(data[key])
+                if key in _COMPLETE_MODES and array.shape[0] != _COMPLETE_MODES[key]:
+                    continue
+                if hashlib.sha256(array.tobytes()).hexdigest() != digest:
+                    differences.append(key)
+    except ModelFileError:
+        raise
+    except NPZ_READ_ERRORS as error:  # missing, not an archive, truncated, pickled arrays
+        raise ModelFileError(f"{archive}: cannot read ICT-FaceKit archive ({type(error).__name__}: {error})") from error
     return differences
+
+
+def _archive_problem(archive: Path) -> str | None:
+    """Why a cached archive cannot be used (an unreadable zip directory, e.g. a truncated copy, or
+    missing arrays), or ``None``; reads the zip's directory only."""
+    try:
+        with zipfile.ZipFile(archive) as data:
+            names = {name.removesuffix(".npy") for name in data.namelist()}
+    except (zipfile.BadZipFile, OSError) as error:
+        return f"{type(error).__name__}: {error}"
+    missing = [key for key in ICT_KEYS if key not in names]
+    return f"missing arrays {missing}" if missing else None
 
 
 def _report(archive: Path, progress: Callable[[str], object] | None) -> None:
@@ -173,9 +193,12 @@ def fetch_ict(
     if source is not None and not Path(source).exists():
         raise ModelFileError(f"{source}: no such file or folder (--from expects a local ICT-FaceKit copy)")
     if archive.is_file() and not force:
-        say(f"ICT-FaceKit is already in {archive}" + ("" if source is None else
-                                                      f"; {source} was not converted (--force converts it)"))
-        return archive
+        problem = _archive_problem(archive)
+        if problem is None:
+            say(f"ICT-FaceKit is already in {archive}" + ("" if source is None else
+                                                          f"; {source} was not converted (--force converts it)"))
+            return archive
+        say(f"{archive} is damaged ({problem}); converting it again")
     if source is not None:
         say(f"converting ICT-FaceKit from {source}")
         ict_npz_from_raw(source, archive)

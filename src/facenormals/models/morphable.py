@@ -15,7 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_faces, check_finite, check_floating,
-                                    check_integer, check_shape, outside_millimetre_span, outward_share)
+                                    check_integer, check_positive, check_shape, outside_millimetre_span, outward_share)
 from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
@@ -118,9 +118,9 @@ class MorphableModel(nn.Module):
                 f"{50 * (1 - outward):.0f} % of its area): they are wound clockwise seen from outside, facenormals "
                 "expects counter-clockwise (docs/conventions.md); reverse them (faces[:, [0, 2, 1]])"
             )
-        dtype = mean.dtype
+        dtype, device = mean.dtype, mean.device
         if shape_std is None:
-            shape_std = torch.ones(dims["K"], dtype=dtype)
+            shape_std = torch.ones(dims["K"], dtype=dtype, device=device)
         shape_std = torch.as_tensor(shape_std, dtype=dtype)
         check_shape(shape_std, ["K"], "shape_std", dims)
         if shape_std.numel() and not bool((shape_std > 0).all() & torch.isfinite(shape_std).all()):
@@ -142,7 +142,7 @@ class MorphableModel(nn.Module):
                 f"expression_names: expected {expression_basis.shape[0]} names, got {len(names)}"
             )
         if face_region is None:
-            face_region = torch.ones(num_vertices, dtype=torch.bool)
+            face_region = torch.ones(num_vertices, dtype=torch.bool, device=device)
         face_region = torch.as_tensor(face_region)
         check_shape(face_region, ["N"], "face_region", dims)
         if face_region.dtype != torch.bool:
@@ -163,7 +163,7 @@ class MorphableModel(nn.Module):
         self.register_buffer("expression_basis", expression_basis.to(dtype).contiguous())
         self.register_buffer("faces", faces.to(torch.long).contiguous())
         self.register_buffer(
-            "landmark_indices", torch.tensor([int(i) for i in landmarks.values()], dtype=torch.long)
+            "landmark_indices", torch.tensor([int(i) for i in landmarks.values()], dtype=torch.long, device=device)
         )
         self.register_buffer("face_region", face_region.contiguous())
 
@@ -224,6 +224,8 @@ class MorphableModel(nn.Module):
             (torch.Size([12, 2]), True)
         """
         parts = [self.shape_basis] + ([self.expression_basis] if with_expression else [])
+        if dtype is not None:
+            check_model_dtype(dtype)
         dtype = dtype or self.shape_basis.dtype
         return self._derived(("basis_matrix", with_expression, dtype), parts, lambda: torch.cat(
             [p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1).to(dtype).contiguous())
@@ -245,12 +247,24 @@ class MorphableModel(nn.Module):
                              lambda: vertex_normals(self.mean[None], self.faces)[0, self.landmark_indices])
 
     def _derived(self, slot: object, sources: Sequence[Tensor], build: Callable[[], Tensor]) -> Tensor:
-        """``build()``, kept under ``slot`` until one of its ``sources`` changes (``.to()``, in-place edits)."""
-        key = tuple((id(p), p._version, p.dtype, p.device) for p in sources)
+        """``build()``, kept under ``slot`` until one of its ``sources`` changes: is replaced (``.to()``,
+        assignment) or edited in place (its ``_version``). The entry holds the sources themselves, so
+        that a new tensor can never pass for a freed one that had its ``id``."""
         cache = self.__dict__.setdefault("_derived_cache", {})
-        if cache.get(slot, (None,))[0] != key:
-            cache[slot] = (key, build())
-        return cache[slot][1]
+        entry = cache.get(slot)
+        if entry is None or len(entry[0]) != len(sources) or any(
+                old is not p or version != p._version for (old, version), p in zip(entry[0], sources)):
+            entry = cache[slot] = (tuple((p, p._version) for p in sources), build())
+        return entry[1]
+
+    def _apply(self, fn, *args, **kwargs):
+        self.__dict__.pop("_derived_cache", None)  # .to() / .double(): the cache would keep the old buffers alive
+        return super()._apply(fn, *args, **kwargs)
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.pop("_derived_cache", None)  # derived data, rebuilt on demand; not worth pickling
+        return state
 
     def landmark_vertices(self, vertices: Tensor, names: Sequence[str] | None = None) -> Tensor:
         """Pick the landmark vertices ``(B, L, 3)`` out of ``vertices`` ``(B, N, 3)`` (all, or ``names``)."""
@@ -283,7 +297,7 @@ class MorphableModel(nn.Module):
         if shape_coeffs is None:
             vertices = self.mean
         else:
-            if shape_coeffs.numel() != self.num_shape or shape_coeffs.dim() > 2:
+            if tuple(shape_coeffs.shape) not in ((self.num_shape,), (1, self.num_shape)):
                 raise ValueError(f"shape_coeffs: expected shape ({self.num_shape},) or (1, {self.num_shape}), "
                                  f"got {tuple(shape_coeffs.shape)}")
             vertices = self(shape_coeffs.reshape(1, -1).to(self.mean))[0]
@@ -351,9 +365,13 @@ class MorphableModel(nn.Module):
                           f"({int(self.face_region.sum())} of {self.num_vertices} vertices); pass face_region or "
                           "name the nose tip", stacklevel=2)
         elif face_region is None:
+            radius = check_positive(radius, "radius")
+            nose = check_integer(landmarks["nose_tip"], "landmarks['nose_tip']")
+            if not 0 <= nose < self.num_vertices:
+                raise ValueError(f"landmarks: index {nose} of 'nose_tip' is outside [0, {self.num_vertices})")
             self.check_millimetres()  # the radius is in mm
             mean = self.mean.double()
-            near = (mean - mean[int(landmarks["nose_tip"])]).norm(dim=-1) < radius
+            near = (mean - mean[nose]).norm(dim=-1) < radius
             facing = vertex_normals(mean[None], self.faces)[0, :, 2] < 0
             face_region = near & facing
         return MorphableModel(self.mean, self.shape_basis, self.faces, shape_std=self.shape_std,
@@ -413,6 +431,8 @@ class MorphableModel(nn.Module):
                     raise ModelFileError(f"{path}: format version {version.tolist()!r}, expected an integer")
                 if int(version) > FORMAT_VERSION:
                     raise ModelFileError(f"{path}: format version {int(version)} is newer than supported")
+                if int(version) < 1:
+                    raise ModelFileError(f"{path}: format version {int(version)}, expected 1 to {FORMAT_VERSION}")
                 arrays = {k: data[k] for k in data.files}
         except ModelFileError:
             raise
@@ -426,9 +446,9 @@ class MorphableModel(nn.Module):
         if "units" in arrays and str(arrays["units"]) != "mm":
             raise ModelFileError(f"{path}: units {str(arrays['units'])!r}, expected 'mm'")
         for key, kind in (("mean", "f"), ("shape_basis", "f"), ("shape_std", "f"), ("expression_basis", "f"),
-                          ("faces", "iu")):
+                          ("faces", "iu"), ("face_region", "b")):
             if key in arrays and arrays[key].dtype.kind not in kind:
-                expected = "floating-point" if kind == "f" else "integer"
+                expected = {"f": "floating-point", "iu": "integer", "b": "bool"}[kind]
                 raise ModelFileError(f"{path}: array {key!r} has dtype {arrays[key].dtype}, expected {expected}")
         try:
             return cls(
@@ -443,7 +463,7 @@ class MorphableModel(nn.Module):
                 expression_names=[str(n) for n in arrays.get("expression_names", [])] or None,
                 name=str(arrays.get("name", path.stem)),
                 metadata=json.loads(str(arrays.get("metadata", "{}"))),
-                face_region=torch.from_numpy(arrays["face_region"].astype(bool)) if "face_region" in arrays else None,
+                face_region=torch.from_numpy(arrays["face_region"]) if "face_region" in arrays else None,
             )
         except (ValueError, TypeError) as error:
             raise ModelFileError(f"{path}: inconsistent model arrays: {error}") from error

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import torch
 
+from facenormals.core.check import MILLIMETRE_SPAN, outside_millimetre_span
 from facenormals.models.builtin import builtin_head_model
 from facenormals.models.ict import ICT_FULL_EXPRESSIONS, ICT_FULL_IDENTITIES, load_ict_npz, load_ict_raw
-from facenormals.models.morphable import ModelFileError, MorphableModel
+from facenormals.models.morphable import ModelFileError, MorphableModel, check_model_dtype
 
 __all__ = ["cache_dir", "find_ict_archive", "load_model"]
 
@@ -47,6 +48,9 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
 
     if path.is_dir() and any((folder / "generic_neutral_mesh.obj").is_file() for folder in (path, path / "FaceXModel")):
         return load_ict_raw(path, dtype=dtype)  # the FaceXModel folder or the repository's root
+    if path.is_dir():
+        raise ModelFileError(f"{path}: a folder, not a model file (an ICT-FaceKit repository folder holds "
+                             "FaceXModel/generic_neutral_mesh.obj)")
     if not path.is_file():
         hint = "" if path.suffix or len(path.parts) > 1 else ' (model names: "ict", "builtin", "auto")'
         raise ModelFileError(f"{path}: model file not found{hint}")
@@ -108,12 +112,20 @@ def load_model(spec: str | Path = "auto", dtype: torch.dtype = torch.float32) ->
     Raises:
         ModelFileError: if ``"ict"`` is requested but not found, or the file cannot be read.
     """
+    check_model_dtype(dtype)
+    if not isinstance(spec, (str, Path)):
+        raise ValueError(f"spec: expected a model name ('ict', 'builtin', 'auto') or a path, got {spec!r}")
     if isinstance(spec, Path):
-        return _load_path(spec, dtype)
+        return _in_millimetres(_load_path(spec, dtype), spec)
     if spec in ("auto", "ict"):
         archive = find_ict_archive()
         if archive is not None:
-            model = load_ict_npz(archive, dtype=dtype)
+            try:
+                model = load_ict_npz(archive, dtype=dtype)
+            except ModelFileError as error:
+                remedy = ("`facenormals models fetch ict --force` rebuilds it" if archive == cache_dir() / "ict" / ICT_ARCHIVE
+                          else "replace it, or name a good copy with $FACENORMALS_ICT")
+                raise ModelFileError(f"{error}; {remedy}") from error
             if model.num_shape < ICT_FULL_IDENTITIES or model.num_expressions < ICT_FULL_EXPRESSIONS:  # a subset's
                 warnings.warn(f"{archive}: a partial ICT-FaceKit ({model.num_shape} identity components and "
                               f"{model.num_expressions} expressions of {ICT_FULL_IDENTITIES} and "
@@ -128,4 +140,15 @@ def load_model(spec: str | Path = "auto", dtype: torch.dtype = torch.float32) ->
         return builtin_head_model(dtype=dtype)
     if spec == "builtin":
         return builtin_head_model(dtype=dtype)
-    return _load_path(Path(spec), dtype)
+    return _in_millimetres(_load_path(Path(spec), dtype), Path(spec))
+
+
+def _in_millimetres(model: MorphableModel, path: Path) -> MorphableModel:
+    """``model``, unless its mean is not head-sized in mm after its loader's unit conversion (e.g. a BFM
+    file already converted to mm, divided again): a ``ModelFileError`` naming the file then."""
+    span = outside_millimetre_span(model.mean)
+    if span is not None:
+        low, high = MILLIMETRE_SPAN
+        raise ModelFileError(f"{path}: the loaded mean spans {span:.3g} mm across, not the {low:g}-{high:g} of a face "
+                             "or head: the file is not in the units its format uses (docs/models.md)")
+    return model
