@@ -92,3 +92,42 @@ def test_models_without_landmarks_are_refused_with_the_remedy():
     assert 0.8 < int((region & head.face_region).sum()) / int(head.face_region.sum()) <= 1.0
     fit = fit_head(views.normal_maps, views.landmarks, annotated, rounds=1, iterations_per_round=2)
     assert fit.vertices.shape == (1, head.num_vertices, 3)
+
+
+def test_arguments_folders_and_units_are_named(tmp_path):
+    from facenormals.models import MorphableModel, builtin_head_model
+
+    with pytest.raises(ValueError, match="dtype: expected a floating-point torch dtype, got torch.int32"):
+        load_model("builtin", dtype=torch.int32)
+    with pytest.raises(ValueError, match="dtype: expected a floating-point torch dtype, got 'float32'"):
+        load_model("builtin", dtype="float32")
+    with pytest.raises(ValueError, match="spec: expected a model name .* or a path, got None"):
+        load_model(None)
+    with pytest.raises(ModelFileError, match=f"{tmp_path}: a folder, not a model file"):
+        load_model(str(tmp_path))
+    head = builtin_head_model()  # a model file whose mean is in metres (e.g. converted twice)
+    MorphableModel(head.mean / 1000, head.shape_basis / 1000, head.faces, name="m").save(tmp_path / "metres.npz")
+    with pytest.raises(ModelFileError, match=r"metres.npz: the loaded mean spans 0.367 mm across, not the 50-5000"):
+        load_model(tmp_path / "metres.npz")
+
+
+def test_a_damaged_ict_archive_names_its_remedy(ict_npz, tmp_path, monkeypatch):
+    from facenormals.models import ict_release_differences
+
+    good = ict_npz.read_bytes()
+    cached = tmp_path / "home" / "ict" / "ict_face_head.npz"
+    cached.parent.mkdir(parents=True)
+    cached.write_bytes(good[: len(good) // 2])
+    monkeypatch.setenv("FACENORMALS_HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("FACENORMALS_ICT", raising=False)
+    for spec in ("ict", "auto"):  # "auto" must not fall back to the built-in head silently
+        with pytest.raises(ModelFileError, match="cannot read ICT-FaceKit archive .*; `facenormals models fetch ict "
+                                                 "--force` rebuilds it"):
+            load_model(spec)
+    with pytest.raises(ModelFileError, match=f"{cached}: cannot read ICT-FaceKit archive"):
+        ict_release_differences(cached)
+    elsewhere = tmp_path / "copy.npz"
+    elsewhere.write_bytes(good[: len(good) // 2])
+    monkeypatch.setenv("FACENORMALS_ICT", str(elsewhere))
+    with pytest.raises(ModelFileError, match="replace it, or name a good copy with \\$FACENORMALS_ICT"):
+        load_model("ict")
