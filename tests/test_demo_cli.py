@@ -94,6 +94,11 @@ def test_evaluate_command(tmp_path, capsys):
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(outside)]) == 1
     assert f"{outside}: expected vertex indices in [0, {model.num_vertices}) of {pred}, got {{'chin': 10000000}}" \
         in capsys.readouterr().err
+    incomplete = tmp_path / "incomplete.json"  # no chin: the error names the file it is missing from
+    incomplete.write_text(json.dumps({k: v for k, v in model.landmarks.items() if k != "chin"}))
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(incomplete)]) == 1
+    assert f"{pred} (landmarks {incomplete}) against {ref}: correspondences: source_landmarks: expected landmark " \
+           "'chin'" in capsys.readouterr().err
 
 
 def test_library_errors_and_ctrl_c_are_one_line_and_an_exit_status(monkeypatch, capsys):

@@ -138,7 +138,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         report = evaluate_reconstruction(pred_v.double(), pred_f, ref_v.double(), ref_f, model.face_region,
                                          correspondences=(pred_landmarks, model.landmarks))
     except ValueError as error:  # e.g. a degenerate mesh: say which files
-        raise ValueError(f"{args.prediction} against {args.reference}: {error}") from None
+        files = f"{args.prediction} (landmarks {args.prediction_landmarks})" if args.prediction_landmarks else args.prediction
+        raise ValueError(f"{files} against {args.reference}: {error}") from None
     print(report)  # with its warnings, if any
     if args.json:
         from facenormals.core import atomic_write

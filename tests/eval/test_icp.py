@@ -119,3 +119,25 @@ def test_bad_inputs(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         icp_point_to_plane(**args)
+
+
+def test_a_two_cycle_of_closest_pairs_counts_as_converged(ict_npz):
+    """Between two different ICT heads the closest pairs can alternate between two sets for ever: ICP
+    ran to max_iterations, reported not converged, and returned whichever of the two states the
+    iteration count's parity left it in."""
+    from facenormals.models import load_ict_npz
+
+    model = load_ict_npz(ict_npz, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(3):
+        coeffs = torch.randn(model.num_shape, generator=g, dtype=torch.float64)
+    prediction = model((coeffs * model.shape_std)[None])[0]  # the third identity of that seed cycled
+    region = model.face_region
+    points = model.mean[region]
+    normals = vertex_normals(model.mean[None], model.faces)[0][region]
+    init = fit_similarity(prediction[model.landmark_indices][None], model.mean[model.landmark_indices][None],
+                          scale=False)
+    results = {n: icp_point_to_plane(prediction, points, normals, init=init, scale=False, max_iterations=n,
+                                     direction="target_to_source") for n in (50, 51)}
+    assert all(r.converged and r.iterations < 50 for r in results.values())
+    assert results[50].rmse == results[51].rmse  # the same state, whatever the parity of the limit

@@ -321,3 +321,16 @@ def test_closest_points_on_slivers():
         sampled = np.stack([a, b, c], 1)[:, None] * w[None, :, :, None]
         bound = np.linalg.norm(sampled.sum(2) - points[:, None], axis=2).min(1)
         assert (got <= bound + 1e-6).all(), flatness
+
+
+def test_depth_statistics_refuse_infinite_errors():
+    """NaN means "no hit"; an infinite error was counted as a miss, lowering the coverage silently."""
+    with pytest.raises(ValueError, match="errors: expected finite values or NaN .* got 1 infinite"):
+        depth_statistics(torch.tensor([1.0, float("inf"), float("nan")]))
+
+
+def test_closest_points_on_mesh_checks_k():
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    for k in (0, 1.5, True):
+        with pytest.raises(ValueError, match="k: expected an integer"):
+            closest_points_on_mesh(np.zeros((1, 3)), v, np.array([[0, 1, 2]]), k=k)

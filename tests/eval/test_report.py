@@ -11,6 +11,7 @@ from facenormals.eval import (
     AlignmentResult,
     EvaluationReport,
     evaluate_reconstruction,
+    shares_vertex_order,
     summarise,
 )
 from facenormals.models import builtin_head_model
@@ -163,7 +164,17 @@ def test_report_dict_and_table(head):
         ({"correspondences": [[0.5, 1], [2, 3], [4, 5]]}, r"correspondences: expected integer index pairs"),
         ({"correspondences": {"chin": 0}}, r"correspondences: source_landmarks: expected landmark 'right_eye_outer'"),
         ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "chin": -1}},
-         r"correspondences: expected prediction landmark vertex indices \(column 0\) in \[0, \d+\), got values in \[-1,"),
+         r"correspondences: source_landmarks\['chin'\]: expected an integer >= 0, got -1"),
+        ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "chin": 10.9}},
+         r"correspondences: source_landmarks\['chin'\]: expected an integer, got float 10.9"),
+        ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "nose_tip": True}},
+         r"correspondences: source_landmarks\['nose_tip'\]: expected an integer"),
+        ({"icp_max_iterations": -1}, r"icp_max_iterations: expected an integer >= 0, got -1"),
+        ({"icp_tolerance": float("nan")}, r"icp_tolerance: expected a finite number"),
+        ({"icp_max_distance": 0.0}, r"icp_max_distance: expected a finite number > 0"),
+        ({"correspondences": ({n: 0 for n in DEFAULT_ALIGNMENT_LANDMARKS},
+                              {n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)})},
+         r"correspondences: the rough alignment's 6 point pairs cannot fix a transform"),
         ({"correspondences": ({n: 10**7 for n in DEFAULT_ALIGNMENT_LANDMARKS},
                               {n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)})},
          r"correspondences: expected prediction landmark vertex indices \(column 0\) in \[0, \d+\), got values in \[10000000"),
@@ -254,3 +265,30 @@ def test_shares_vertex_order_ignores_triangle_order_start_winding_and_diagonals(
     shuffled = faces[torch.randperm(len(faces), generator=generator)][:, [2, 0, 1]]
     report = evaluate_reconstruction(model.mean, shuffled, model.mean, model.faces, model.face_region)
     assert report.same_topology and report.similarity.correspondence_rmse < 1e-9
+
+
+def test_a_cropped_reference_names_the_region_vertices_on_no_triangle(head):
+    """The face-region vertices that a crop left on no triangle had no normal: the error named
+    'reference_normals', no argument, and indexed the region instead of the mesh."""
+    model, shape = head
+    nose = model.mean[model.landmarks["nose_tip"]]
+    kept = (model.mean - nose).norm(dim=1) < 60.0
+    faces = model.faces[kept[model.faces].all(1)]
+    stray = model.face_region & ~torch.isin(torch.arange(model.num_vertices), faces.unique())
+    with pytest.raises(ValueError, match=f"reference_face_region: {int(stray.sum())} of its vertices \\(first: vertex "
+                                         f"{int(stray.nonzero()[0])}\\) lie on no"):
+        evaluate_reconstruction(shape, model.faces, model.mean, faces, model.face_region, correspondences=model)
+    report = evaluate_reconstruction(shape, model.faces, model.mean, faces, model.face_region & ~stray,
+                                     correspondences=model)  # the region cropped too: fine
+    assert report.similarity.point_to_plane_rmse > 0
+
+
+def test_shares_vertex_order_checks_its_arguments():
+    quad = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    with pytest.raises(ValueError, match=r"faces: expected shape \(F, 3\), got \(3,\)"):
+        shares_vertex_order(torch.tensor([0, 1, 2]), quad)
+    with pytest.raises(ValueError, match="reference_faces: expected integer vertex indices, got dtype torch.float32"):
+        shares_vertex_order(quad, torch.tensor([[0.9, 1.5, 2.2]]))
+    for share in (float("nan"), 1.5):
+        with pytest.raises(ValueError, match="min_shared: expected"):
+            shares_vertex_order(quad, quad, min_shared=share)

@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape
+from facenormals.core.check import check_finite, check_floating, check_integer, check_same_dtype_device, check_shape
 from facenormals.models.landmarks import IBUG68_OF_LANDMARK
 
 __all__ = ["DEFAULT_ALIGNMENT_LANDMARKS", "apply_similarity", "fit_similarity", "landmark_correspondences"]
@@ -146,11 +146,10 @@ def apply_similarity(points: Tensor, s: Tensor, rotation: Tensor, translation: T
 
 
 def _lookup(landmarks: Mapping[str, int], name: str, argument: str) -> int:
-    if name in landmarks:
-        return int(landmarks[name])
     ibug = IBUG68_OF_LANDMARK.get(name)
-    if ibug is not None and f"ibug_{ibug:02d}" in landmarks:
-        return int(landmarks[f"ibug_{ibug:02d}"])
+    for key in (name, None if ibug is None else f"ibug_{ibug:02d}"):
+        if key in landmarks:  # int() would truncate 10.9 and take True for 1
+            return check_integer(landmarks[key], f"{argument}[{key!r}]", minimum=0)
     raise ValueError(
         f"{argument}: expected landmark {name!r} (or its iBUG-68 equivalent), got names {sorted(landmarks)}"
     )

@@ -110,7 +110,9 @@ def icp_point_to_plane(
         tolerance: stop when the update is small, :math:`\max(\lVert\omega\rVert, |\sigma|,
             \lVert\tau\rVert / \rho) <` ``tolerance`` with :math:`\rho` the RMS radius of the target
             about its centroid, or when the point-to-plane RMSE of the pairs changes by less than
-            ``tolerance`` relative to the previous iteration.
+            ``tolerance`` relative to the previous iteration, or returns to within ``tolerance`` of
+            the one before it: a 2-cycle, where the closest pairs and the updates alternate between two
+            sets (the better of its two states is returned). All three count as converged.
         max_distance: reject pairs whose points are farther apart than this (mm) after the current
             transform. ``None`` (default) keeps every pair. If fewer than ``3 × unknowns`` pairs
             (18 rigid, 21 with scale) would remain, that iteration keeps all pairs instead.
@@ -187,15 +189,25 @@ def icp_point_to_plane(
             keep = ok
         return x[keep], y[keep], n[keep]
 
-    iterations, converged, previous = 0, False, None
+    def same(a: float, b: float) -> bool:
+        return abs(a - b) <= tolerance * max(a, 1e-300)
+
+    iterations, converged, history = 0, False, []  # history: (rmse, state) of the states before this one
     for _ in range(max_iterations):
         x, y, n = pairs(s, rotation, translation)
         residual = ((x - y) * n).sum(1)
         rmse = float(np.sqrt(np.mean(residual**2))) if len(residual) else 0.0
-        if previous is not None and abs(previous - rmse) <= tolerance * max(previous, 1e-300):
+        if history and same(history[-1][0], rmse):
             converged = True
             break
-        previous = rmse
+        if len(history) >= 2 and same(history[-2][0], rmse):
+            # a 2-cycle: the closest pairs alternate between two sets, and so do the updates; keep the
+            # better of the two states (its RMSE differs from the other's by ~1e-4 relative)
+            if history[-1][0] < rmse:
+                s, rotation, translation = history[-1][1]
+            converged = True
+            break
+        history.append((rmse, (s, rotation, translation)))
         centre = x.mean(0)
         xc = x - centre
         columns = [np.cross(xc, n), n] + ([(xc * n).sum(1, keepdims=True)] if scale else [])

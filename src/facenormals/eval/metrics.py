@@ -16,8 +16,9 @@ Definitions, for a reference vertex :math:`p_i` with unit normal :math:`n_i`:
   the viewer, the one nearest to :math:`p_i`; NaN where the line misses them. Statistics are taken over
   :math:`|\Delta z_i|` of the hits: mean, standard deviation (population, ``ddof=0``), median and
   :math:`\delta_{90}` = the 90th percentile of :math:`|\Delta z_i|` (linear interpolation between
-  order statistics, :func:`numpy.percentile`'s default), i.e. 90 % of the hit vertices have an
-  absolute depth error of at most :math:`\delta_{90}`.
+  order statistics, :func:`numpy.percentile`'s default): about 90 % of the hit vertices have an
+  absolute depth error of at most :math:`\delta_{90}`, exactly 90 % only when it falls on an order
+  statistic (e.g. 89.99 % of ICT's 4,556 depth points).
 """
 
 from __future__ import annotations
@@ -224,6 +225,9 @@ def depth_statistics(errors: Tensor) -> DepthStatistics:
     """
     check_shape(errors, ["N"], "errors")
     check_floating(errors, "errors")
+    if bool(torch.isinf(errors).any()):  # NaN means no hit; an infinite error is a bug upstream
+        raise ValueError(f"errors: expected finite values or NaN (no hit), got {int(torch.isinf(errors).sum())} "
+                         "infinite")
     e = np.abs(_numpy(errors))
     hit = e[np.isfinite(e)]
     coverage = float(len(hit) / len(e)) if len(e) else 0.0

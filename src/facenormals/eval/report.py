@@ -35,7 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_finite, check_floating, check_shape,
+from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_finite, check_floating, check_integer,
+                                    check_nonnegative, check_positive, check_real, check_shape,
                                     outside_millimetre_span, outward_share)
 from facenormals.eval.align import (DEFAULT_ALIGNMENT_LANDMARKS, apply_similarity, fit_similarity,
                                     landmark_correspondences)
@@ -157,8 +158,8 @@ class EvaluationReport:
         """Signs that the numbers may be those of a wrong alignment rather than of the shape: the
         rough alignment's points left more than :data:`ALIGNMENT_RMS_WARNING` mm apart (wrong
         correspondences: left and right swapped, another vertex order). (ICP's own convergence is
-        in the table but no warning: between two different heads it often cycles below its 1e-6
-        tolerance's reach with errors settled to 1e-3 mm.)"""
+        in the table but no warning: between two different heads its closest pairs often end in a
+        2-cycle, which :func:`icp_point_to_plane` detects and counts as converged.)"""
         out = []
         for name in ALIGNMENTS:
             result = getattr(self, name)
@@ -280,6 +281,14 @@ def shares_vertex_order(faces: Tensor, reference_faces: Tensor, min_shared: floa
         >>> shares_vertex_order(torch.tensor([[3, 2, 1], [3, 1, 0]]), quad, min_shared=1.0)
         False
     """
+    for name, f in (("faces", faces), ("reference_faces", reference_faces)):
+        f = torch.as_tensor(f)
+        if f.dim() != 2 or f.shape[1] != 3:
+            raise ValueError(f"{name}: expected shape (F, 3), got {tuple(f.shape)}")
+        if f.dtype.is_floating_point or f.dtype.is_complex or f.dtype == torch.bool:
+            raise ValueError(f"{name}: expected integer vertex indices, got dtype {f.dtype}")
+    if not 0.0 <= check_real(min_shared, "min_shared") <= 1.0:
+        raise ValueError(f"min_shared: expected a share in [0, 1], got {min_shared!r}")
     faces, reference_faces = (torch.as_tensor(f).detach().cpu().long() for f in (faces, reference_faces))
     if faces.numel() == 0 or reference_faces.numel() == 0:
         return False
@@ -360,8 +369,9 @@ def evaluate_reconstruction(
             ``same_topology=True`` with different vertex counts, a mesh not in millimetres (its
             bounding box spans less than 50 or more than 5,000 units), triangles wound inward, or a
             reference face region facing more than 45° away from the viewer (not in the model frame).
-            Signs of a wrong alignment (the rough alignment's points more than 20 mm apart, ICP not
-            converged) do not raise: they are in :attr:`EvaluationReport.warnings`.
+            A sign of a wrong alignment, the rough alignment's points more than 20 mm apart, does not
+            raise: it is in :attr:`EvaluationReport.warnings`; ICP's convergence is in
+            :attr:`AlignmentResult.icp_converged`.
 
     Example:
         >>> from facenormals.models import builtin_head_model
@@ -390,10 +400,21 @@ def evaluate_reconstruction(
             f"same_topology: True needs equal vertex counts, got prediction_vertices {tuple(pred.shape)} "
             f"and reference_vertices {tuple(ref.shape)}"
         )
+    icp_max_iterations = check_integer(icp_max_iterations, "icp_max_iterations", minimum=0)
+    icp_tolerance = check_nonnegative(icp_tolerance, "icp_tolerance")
+    if icp_max_distance is not None:
+        icp_max_distance = check_positive(icp_max_distance, "icp_max_distance")
     pairs = _resolve_pairs(correspondences, same_topology, region, pred.shape[0], ref.shape[0], landmark_names)
     if pairs.shape[0] < 3:
         raise ValueError(f"correspondences: expected at least 3 pairs, got {pairs.shape[0]}")
     normals = vertex_normals(ref[None], reference_faces.detach().cpu().long())[0]
+    stray = region & ~(normals.norm(dim=1) > 0)
+    if bool(stray.any()):
+        raise ValueError(
+            f"reference_face_region: {int(stray.sum())} of its vertices (first: vertex {int(stray.nonzero()[0])}) lie "
+            "on no (non-degenerate) reference triangle, so they have no normal to measure along; a cropped reference "
+            "keeps vertices its triangles no longer use: leave them out of the region"
+        )
     points, point_normals = ref[region], normals[region]
     if view_direction is not None:
         check_shape(view_direction, [3], "view_direction")
@@ -410,7 +431,11 @@ def evaluate_reconstruction(
     surface = pred[torch.from_numpy(np.unique(pred_faces))]  # ICP pairs with the surface, not stray vertices
     results = {}
     for name, scale in (("rigid", False), ("similarity", True)):
-        init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
+        try:
+            init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
+        except ValueError as error:
+            raise ValueError(f"correspondences: the rough alignment's {pairs.shape[0]} point pairs cannot fix a "
+                             f"transform ({error})") from None
         moved = apply_similarity(pred[pairs[:, 0]][None], *init)[0]
         alignment_rms = float((moved - ref[pairs[:, 1]]).square().sum(1).mean().sqrt())
         icp = icp_point_to_plane(

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facenormals.core.check import check_integer
+
 __all__ = ["closest_points_on_mesh", "closest_points_on_triangles", "intersect_lines_along_z"]
 
 
@@ -151,6 +153,7 @@ def closest_points_on_mesh(
     from scipy.spatial import cKDTree
 
     points, vertices, faces = _check_query(points, vertices, faces)
+    k = check_integer(k, "k", minimum=1)
     tri = vertices[faces]
     centroid = tri.mean(axis=1)
     radius = np.sqrt(((tri - centroid[:, None]) ** 2).sum(-1)).max(axis=1)
