@@ -255,3 +255,20 @@ def test_an_obj_with_comments_after_data_reads_its_numbers(tmp_path):
     path.write_text("v 0 0 0 # origin\nv 1e0 0 0\nv 0 1.0E+0 0\nf 1 2 3 # one triangle\n")
     vertices, faces = load_mesh(path)
     assert vertices.tolist() == [[0, 0, 0], [1, 0, 0], [0, 1, 0]] and faces.tolist() == [[0, 1, 2]]
+
+
+@pytest.mark.parametrize("name, data, match", [
+    ("short face.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 2 4 3\nf 1 2", "a face line with fewer than 3 vertices"),
+    ("short trailing vertex.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\nv 4 5 6\nv 7 8\n",
+     "line 7: expected a vertex of 3 numbers, got 'v 7 8'"),
+    ("extra data.ply", b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+     b"property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+     b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 2 1 0\n9 9\n", "the PLY header announces 4 data lines, the file holds 6"),
+])
+def test_damage_that_trimesh_reads_silently_is_named(tmp_path, name, data, match):
+    """trimesh dropped a face line cut short, ignored data lines beyond an ASCII PLY's counts, and a
+    short trailing vertex line failed inside numpy without the file's name."""
+    path = tmp_path / name
+    path.write_bytes(data)
+    with pytest.raises(ValueError, match=re.escape(f"{path}: ") + ".*" + re.escape(match)):
+        load_mesh(path)

@@ -72,3 +72,11 @@ def test_overlay_max_points_must_be_a_positive_integer():
     image = np.zeros((8, 8, 3), np.uint8)
     with pytest.raises(ValueError, match="max_points: expected an integer >= 1, got -1"):
         draw_alignment(image, torch.zeros(3, 2), max_points=-1)
+
+
+def test_normal_map_to_image_refuses_nan_and_integer_maps():
+    """NaN normals were drawn as black background, silently."""
+    with pytest.raises(ValueError, match="normal_map: expected finite values"):
+        normal_map_to_image(torch.full((3, 2, 2), float("nan")))
+    with pytest.raises(ValueError, match="normal_map: expected a floating"):
+        normal_map_to_image(torch.zeros(3, 2, 2, dtype=torch.long))

@@ -244,3 +244,10 @@ def test_non_finite_attributes_are_named():
     frags = rasterize_triangles(uv, torch.ones(1, 3), faces, (10, 10))
     with pytest.raises(ValueError, match="attributes: expected finite values, got 1 NaN"):
         interpolate_vertex_attributes(frags, faces, torch.tensor([[[1.0], [float("nan")], [0.0]]]))
+
+
+def test_interpolate_vertex_attributes_names_fragments_of_the_wrong_type():
+    from facenormals.render import interpolate_vertex_attributes
+
+    with pytest.raises(ValueError, match="fragments: expected the Fragments of rasterize_triangles, got NoneType"):
+        interpolate_vertex_attributes(None, torch.tensor([[0, 1, 2]]), torch.ones(1, 3, 2))

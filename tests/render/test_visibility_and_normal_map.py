@@ -231,3 +231,16 @@ def test_a_sloped_surface_does_not_hide_its_own_vertices_at_coarse_resolution():
     # the same lines of sight 5 mm further: behind the plane
     behind = unoccluded_points(pixels, depth + 5.0, zbuffer, tolerance=1e-6)[0]
     assert not bool(behind[surrounded].any())
+
+
+def test_splat_zbuffer_refuses_a_nan_depth_at_a_finite_pixel():
+    """Such a point was dropped from the z-buffer silently (unoccluded_points refuses it); a NaN pixel
+    projects nowhere and stays allowed."""
+    from facenormals.render import splat_zbuffer
+
+    with pytest.raises(ValueError, match="depth: expected a depth for every finite pixel, got 1 NaN"):
+        splat_zbuffer(torch.tensor([[[1.0, 1.0]]]), torch.tensor([[float("nan")]]), (3, 3), 0)
+    zbuf = splat_zbuffer(torch.tensor([[[float("nan"), 1.0], [1.0, 1.0]]]), torch.tensor([[float("nan"), 2.0]]), (3, 3), 0)
+    assert zbuf[0, 1, 1] == 2.0
+    with pytest.raises(ValueError, match="depth"):
+        splat_zbuffer(torch.tensor([[[1.0, 1.0]]]), torch.tensor([[2.0]], dtype=torch.float64), (3, 3), 0)

@@ -145,6 +145,8 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
+    if path.suffix.lower() == ".ply":
+        _check_ascii_ply_counts(path)
     try:
         mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
     except Exception as error:  # trimesh raises many types for corrupt files
@@ -155,6 +157,23 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if path.suffix.lower() == ".obj" and len(points):
         points = _obj_trailing_vertices(path, points)
     return points, np.asarray(mesh.faces)
+
+
+def _check_ascii_ply_counts(path: Path) -> None:
+    """An ASCII PLY's body must hold as many lines as its header's elements count: trimesh reads
+    the counted lines and ignores the rest silently (a damaged or hand-edited file)."""
+    with open(path, "rb") as file:
+        head = file.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0 or b"format ascii" not in head[:end]:
+        return  # binary PLY (trimesh checks its length) or no header: trimesh's errors
+    counts = [int(words[2]) for words in (line.split() for line in head[:end].splitlines())
+              if len(words) == 3 and words[0] == b"element" and words[2].isdigit()]
+    with open(path, "rb") as file:
+        body = file.read().split(b"end_header", 1)[1].splitlines()[1:]
+    lines = sum(1 for line in body if line.strip())
+    if lines != sum(counts):
+        raise ValueError(f"{path}: the PLY header announces {sum(counts)} data lines, the file holds {lines}")
 
 
 #: PLY scalar type names and their little-endian numpy types.
@@ -240,8 +259,8 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
                 return None
             vertex_rows.append(words[1:])
         elif key == b"f":
-            if len(words) < 4:
-                return None
+            if len(words) < 4:  # trimesh would drop it silently, e.g. a file cut short in its last line
+                raise ValueError(f"{path}: a face line with fewer than 3 vertices: {line.decode(errors='replace')!r}")
             corners = [word.split(b"/", 1)[0] for word in words[1:]]
             if b"-" in line:  # relative indices: -1 is the last vertex so far
                 try:
@@ -274,12 +293,19 @@ def _obj_trailing_vertices(path: Path, points: np.ndarray) -> np.ndarray:
     last one a face uses; read the ``v`` lines back so that a model's topology keeps all its vertices."""
     rows = []
     with open(path, "rb") as handle:
-        for line in handle:
+        for number, line in enumerate(handle, 1):
             if line.startswith(b"v ") or line.startswith(b"v\t"):
-                rows.append([float(x) for x in line.split()[1:4]])
+                try:
+                    row = [float(x) for x in line.split()[1:4]]
+                except ValueError:
+                    row = []
+                if len(row) != 3:
+                    raise ValueError(f"{path}: line {number}: expected a vertex of 3 numbers, got "
+                                     f"{line.decode(errors='replace').strip()!r}")
+                rows.append(row)
     if len(rows) <= len(points):
         return points
     full = np.asarray(rows, dtype=np.float64)
-    if full.shape[1] != 3 or not np.allclose(full[: len(points)], points, rtol=0, atol=1e-6 * (1 + np.abs(points).max())):
+    if not np.allclose(full[: len(points)], points, rtol=0, atol=1e-6 * (1 + np.abs(points).max())):
         return points  # not the simple case: keep trimesh's reading
     return full

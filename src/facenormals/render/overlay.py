@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_integer, check_shape
+from facenormals.core.check import check_finite, check_floating, check_integer, check_shape
 from facenormals.core.files import atomic_write
 
 __all__ = ["draw_alignment", "normal_map_to_image"]
@@ -26,6 +26,8 @@ def normal_map_to_image(normal_map: Tensor) -> np.ndarray:
         [128, 128, 255]
     """
     check_shape(normal_map, [3, "H", "W"], "normal_map")
+    check_floating(normal_map, "normal_map")
+    check_finite(normal_map, "normal_map")  # NaN normals would be drawn as background
     n = normal_map.detach().cpu().float()
     foreground = n.norm(dim=0) > 0.5
     rgb = torch.stack([n[0], -n[1], -n[2]]) * 0.5 + 0.5

@@ -262,10 +262,15 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
         >>> interpolate_vertex_attributes(frags, faces, torch.ones(1, 3, 2)).shape
         torch.Size([1, 2, 10, 10])
     """
+    if not isinstance(fragments, Fragments):
+        raise ValueError(f"fragments: expected the Fragments of rasterize_triangles, got {type(fragments).__name__}")
     dims = check_shape(attributes, ["B", "N", "C"], "attributes")
     check_floating(attributes, "attributes")  # barycentric weights would round to 0 or 1
     check_finite(attributes, "attributes")
     check_shape(fragments.face_index, ["B", "H", "W"], "fragments.face_index", dims)
+    if fragments.face_index.device != attributes.device:
+        raise ValueError(f"fragments: expected device {attributes.device} (the attributes'), got "
+                         f"{fragments.face_index.device}")
     count = check_faces(faces, dims["N"])["F"]
     if fragments.face_index.numel() and int(fragments.face_index.max()) >= count:
         raise ValueError(f"faces: expected the {int(fragments.face_index.max()) + 1} or more triangles the fragments "

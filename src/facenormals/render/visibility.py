@@ -12,6 +12,7 @@ from facenormals.core.check import (
     check_integer,
     check_nonnegative,
     check_real,
+    check_same_dtype_device,
     check_shape,
 )
 
@@ -176,8 +177,12 @@ def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], ra
     check_shape(depth, ["B", "N"], "depth", dims)
     check_floating(pixels, "pixels")
     check_floating(depth, "depth")
+    check_same_dtype_device(pixels, "pixels", depth=depth)
     height, width = check_image_size(image_size)
     radius = check_integer(radius, "radius", minimum=0)
+    lost = torch.isnan(depth) & torch.isfinite(pixels).all(-1)  # a NaN pixel projects nowhere; a NaN depth is a bug
+    if bool(lost.any()):
+        raise ValueError(f"depth: expected a depth for every finite pixel, got {int(lost.sum())} NaN")
     batch = dims["B"]
     u, v = _nearest_pixel(pixels)
     ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0) & torch.isfinite(depth)
