@@ -1,4 +1,4 @@
-"""Recover a random synthetic head from its exact normal map and landmarks (the README's main job).
+"""Recover a random synthetic head from its exact normal map and landmarks (the synthetic demo, ``facenormals demo``).
 
     python examples/demo_synthetic_fit.py [--model auto|ict|builtin|PATH] [--seed 0]
 """

@@ -1,4 +1,4 @@
-"""The demo main job: synthesise a random head's normal map and landmarks, then recover it.
+"""The synthetic demo (``facenormals demo``): synthesise a random head's normal map and landmarks, then recover it.
 
 Every step is a public op or the public recipe: the model samples a head; ``render_oracle_views``
 renders its exact camera-frame normal map and visible landmarks (standing in for the network);

@@ -42,8 +42,8 @@ from facenormals.nn.unet import NormalLandmarkUNet
 __all__ = ["FitInputs", "NETWORK_FIT_WEIGHTS", "NetworkMaps", "PhotoView", "Reconstruction", "fit_inputs", "landmark_channels", "network_fit_weights",
            "predict_maps", "reconstruct_views", "write_reconstruction"]
 
-#: Energy weights of the fit to the shipped network's maps: the paper's λN and λZ, and a shape prior
-#: λN and λP chosen for the shipped network on validation renders by
+#: Energy weights of the fit to the shipped network's maps: the paper's λZ, and λN and λP chosen for
+#: the shipped network on validation renders by
 #: ``benchmarks/tune_network_fit.py`` (docs/model_card.md). Its normals are ~12 deg off on average
 #: (9 deg median): at the paper's λN = 1 the fit follows their errors, and landmarks alone do as
 #: well; a tenth of the normal term and λP = 1 scored best (4 % lower p2p RMSE than λN = 1, λP = 2,
