@@ -259,3 +259,72 @@ def test_a_broken_pipe_that_is_not_stdout_is_an_error(monkeypatch, capsys):
     assert "facenormals models: error: [Errno 32] Broken pipe to a helper process" in captured.err
     print("still here")
     assert capsys.readouterr().out == "still here\n"
+
+
+def test_outputs_that_are_empty_inputs_or_unwritable_are_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """`evaluate --json pred.ply` overwrote the prediction; empty names wrote into the current folder
+    or skipped the write with exit 0; an unwritable folder failed only after the whole fit."""
+    from pathlib import Path
+
+    from facenormals import reconstruct
+
+    model = builtin_head_model()
+    pred, ref = tmp_path / "pred.ply", tmp_path / "ref.ply"
+    model.export_mesh(pred)
+    model.export_mesh(ref)
+    before = pred.read_bytes()
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--json", str(pred)]) == 1
+    assert f"--json: {pred} is also an input of this command" in capsys.readouterr().err
+    assert pred.read_bytes() == before
+    monkeypatch.chdir(tmp_path)
+    commands = [
+        (["evaluate", str(pred), str(ref), "--model", "builtin", "--json", ""], "--json: expected a file name"),
+        (["demo", "--model", "builtin", "--out", ""], "--out: expected a folder name"),
+        (["synth", "--count", "1", "--out", "", "--model", "builtin", "--quiet"], "--out: expected a folder name"),
+        (["train", "--data", "d", "--out", "", "--steps", "1", "--quiet"], "--out: expected a folder name"),
+        (["train", "--data", "d", "--out", "run", "--steps", "1", "--quiet", "--export", ""],
+         "--export: expected a file name"),
+    ]
+    for argv, message in commands:
+        assert main(argv) == 1, argv
+        assert message in capsys.readouterr().err, argv
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pred.ply", "ref.ply"]  # nothing written here
+    if Path("/proc/self").is_dir():  # a folder where nothing can be created, found before the photos are read
+        monkeypatch.setattr(reconstruct, "reconstruct_photos", lambda *a, **k: pytest.fail("the photos were read"))
+        assert main(["reconstruct", "a.jpg", "-o", "/proc/facenormals/out"]) == 1
+        assert "-o/--out: /proc/facenormals/out cannot be written" in capsys.readouterr().err
+    missing = tmp_path / "new" / "deeper"
+    assert main(["evaluate", str(tmp_path / "none.ply"), str(ref), "--json", str(missing / "r.json")]) == 1
+    capsys.readouterr()
+    assert not (tmp_path / "new").exists()  # the probe's folders are removed again
+
+
+def test_demo_checks_its_seed_and_writes_both_files_or_neither(tmp_path, capsys):
+    for seed, message in (("-1", "seed: expected an integer >= 0"), (str(2**64), "seed: expected an integer below 2**63")):
+        assert main(["demo", "--model", "builtin", "--seed", seed, "--out", str(tmp_path / "d")]) == 1
+        assert message in capsys.readouterr().err
+    out = tmp_path / "d1"
+    out.mkdir()
+    (out / "demo_fit.ply").write_text("the earlier fit")
+    (out / "demo_overlay.png").mkdir()  # the overlay cannot be written
+    assert main(["demo", "--model", "builtin", "--seed", "7", "--out", str(out)]) == 1
+    capsys.readouterr()
+    assert (out / "demo_fit.ply").read_text() == "the earlier fit"
+    assert sorted(p.name for p in out.iterdir()) == ["demo_fit.ply", "demo_overlay.png"]  # no temporaries left
+
+
+def test_train_names_a_checkpoint_without_its_settings(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save({"format": "facenormals-train"}, run / "last.pt")
+    assert main(["train", "--data", str(tmp_path), "--out", str(run), "--steps", "1", "--quiet"]) == 1
+    assert "last.pt: a facenormals training checkpoint without its settings ('config')" in capsys.readouterr().err
+
+
+def test_an_empty_facenormals_home_is_unset(monkeypatch):
+    from pathlib import Path
+
+    from facenormals.models.registry import cache_dir
+
+    monkeypatch.setenv("FACENORMALS_HOME", "")
+    assert cache_dir() == Path.home() / ".cache" / "facenormals"

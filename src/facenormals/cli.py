@@ -19,7 +19,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from facenormals.models import load_model
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    _check_writable(Path(args.out), "--out", folder=True)
+    _check_writable(args.out, "--out", folder=True)
     model = load_model(args.model)
     if model.name == "builtin" and args.model == "auto":
         print("ICT-FaceKit not found: using the built-in procedural head (`facenormals models fetch ict` gets it)")
@@ -97,8 +97,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from facenormals.mesh import load_mesh
     from facenormals.models import load_model
 
-    if args.json:
-        _check_writable(Path(args.json), "--json")
+    if args.json is not None:
+        _check_writable(args.json, "--json", inputs=(args.prediction, args.reference, args.prediction_landmarks))
     pred_v, pred_f = load_mesh(args.prediction)
     ref_v, ref_f = load_mesh(args.reference)
     model = load_model(args.model)
@@ -141,10 +141,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         files = f"{args.prediction} (landmarks {args.prediction_landmarks})" if args.prediction_landmarks else args.prediction
         raise ValueError(f"{files} against {args.reference}: {error}") from None
     print(report)  # with its warnings, if any
-    if args.json:
+    if args.json is not None:
         from facenormals.core import atomic_write
 
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(args.json) as part:
             part.write_text(json.dumps(_json_safe(report.as_dict()), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
@@ -165,6 +164,7 @@ def _json_safe(value):
 def _cmd_synth(args: argparse.Namespace) -> int:
     from facenormals.data import SynthConfig, write_dataset
 
+    _check_writable(args.out, "--out", folder=True)
     config = SynthConfig(identity_scale=args.identity_scale, background_folders=tuple(args.backgrounds))
     summary = write_dataset(args.out, args.count, workers=args.workers, seed=args.seed, model_spec=args.model,
                             shard_size=args.shard_size, progress=not args.quiet, rank=args.rank,
@@ -178,6 +178,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from facenormals.core.check import environment_integer
     from facenormals.training import TrainConfig, export_weights, train
 
+    _check_writable(args.out, "--out", folder=True)
     fields = TrainConfig.__dataclass_fields__
     values = {name: getattr(args, name) for name in fields if getattr(args, name, None) is not None}
     last = Path(args.out) / "last.pt"
@@ -188,8 +189,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         stored = load_checkpoint(last)["config"]
         values.update({key: stored[key] for key in RESUMED_SETTINGS if key not in values and key in stored})
     config = TrainConfig(**values)
-    if args.export:
-        _check_export_path(Path(args.export), Path(config.out))
+    if args.export is not None:
+        _check_export_path(args.export, Path(config.out))
     summary = train(config, progress=not args.quiet)
     if environment_integer("RANK", 0) != 0:  # under torchrun only rank 0 reports and exports
         return 130 if summary.stopped_by == "signal" else 0
@@ -201,7 +202,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print("interrupted: rerun the same command to resume" + (" (and export)" if args.export else ""),
               file=sys.stderr)
         return 130
-    if args.export:
+    if args.export is not None:
         from torch.utils.data import Subset
 
         from facenormals.data import SyntheticHeadDataset
@@ -213,9 +214,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_writable(path: Path, option: str, folder: bool = False) -> None:
-    """Refuse, before any work, an output ``path`` that is a folder (a file when ``folder``) or
-    lies under a file."""
+def _check_writable(path: str | Path, option: str, folder: bool = False, inputs: Sequence[str | None] = ()) -> None:
+    """Refuse, before any work, an output ``path`` that cannot be written or would destroy something: an
+    empty name (an unset variable: the output would land in the current folder), a folder (a file when
+    ``folder``), a path under a file, one of the command's ``inputs``, or a folder where no file can be
+    created (tried by creating one, and the missing folders leading to it, then removing them again)."""
+    from facenormals.core.files import temporary_beside
+
+    if str(path) == "":
+        raise ValueError(f"{option}: expected a {'folder' if folder else 'file'} name, got an empty string")
+    path = Path(path)
     if folder and path.exists() and not path.is_dir():
         raise ValueError(f"{option}: {path} exists and is not a folder")
     if not folder and path.is_dir():
@@ -223,16 +231,33 @@ def _check_writable(path: Path, option: str, folder: bool = False) -> None:
     blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
     if blocking is not None:
         raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
+    for name in inputs:
+        if name is not None and Path(name).resolve() == path.resolve():
+            raise ValueError(f"{option}: {path} is also an input of this command; writing it would destroy the input")
+    where = path if folder else path.parent
+    missing = [p for p in (where, *where.parents) if not p.exists()]
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        temporary_beside(where / "probe").unlink()
+    except OSError as error:
+        raise ValueError(f"{option}: {path} cannot be written ({error.strerror or error})") from None
+    finally:
+        for folder_made in missing:  # deepest first: a failed command leaves no empty folders behind
+            try:
+                folder_made.rmdir()
+            except OSError:
+                break
 
 
-def _check_export_path(path: Path, out: Path) -> None:
+def _check_export_path(export: str, out: Path) -> None:
     """Refuse, before training, an --export path that cannot be written or would destroy a file."""
     from facenormals.nn import load_weights
 
+    _check_writable(export, "--export")
+    path = Path(export)
     if path.resolve() == (out / "last.pt").resolve():
         raise ValueError(f"--export: {path} is the run's checkpoint; writing the weights over it would lose the "
                          "training state, choose another file")
-    _check_writable(path, "--export")
     if path.exists():
         try:
             load_weights(path)
@@ -254,9 +279,7 @@ def _parse_box(text: str) -> tuple[float, float, float, float]:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from facenormals.reconstruct import reconstruct_photos
 
-    if not args.out:  # e.g. an unset $OUTDIR: the files would land in the current folder
-        raise ValueError("-o/--out: expected a folder name, got an empty string")
-    _check_writable(Path(args.out), "-o/--out", folder=True)  # before the photos are read and fitted
+    _check_writable(args.out, "-o/--out", folder=True)  # before the photos are read and fitted
     boxes = list(args.box or [])
     if boxes and len(boxes) != len(args.images):
         raise ValueError(f"--box: give one per image ({len(args.images)}) or none, got {len(boxes)}")

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import torch
 
+from facenormals.core.check import check_integer
+from facenormals.core.files import publish_together, temporary_beside
 from facenormals.eval import evaluate_reconstruction
 from facenormals.fitting import fit_head
 from facenormals.fitting.oracle import render_oracle_views
@@ -51,6 +53,9 @@ def run_demo(
 ) -> DemoReport:
     """Run the synthetic recover-a-random-head demo and return its report (see the module docstring)."""
     start = time.perf_counter()
+    seed = check_integer(seed, "seed", minimum=0)
+    if seed >= 2**63:  # torch's generators take a signed 64-bit seed
+        raise ValueError(f"seed: expected an integer below 2**63, got {seed}")
     if model.mean.dtype != torch.float32:  # .to() converts a module in place: the caller's model stays as it is
         model = copy.deepcopy(model).to(torch.float32)
     g = torch.Generator().manual_seed(seed)
@@ -92,12 +97,23 @@ def run_demo(
         mesh_path=None,
         overlay_path=None,
     )
-    if out_dir is not None:
+    if out_dir is not None:  # both files or neither: a failure leaves the folder's earlier pair as it was
         out = Path(out_dir)
-        report.mesh_path = result.export(out / "demo_fit.ply")
+        out.mkdir(parents=True, exist_ok=True)
+        mesh_path, overlay_path = out / "demo_fit.ply", out / "demo_overlay.png"
         R = euler_to_rotation_matrix(result.angles[0])
         pixels, _ = project_points(result.vertices, R, result.translation[0], result.intrinsics[0])
-        report.overlay_path = out / "demo_overlay.png"
-        draw_alignment(normal_map_to_image(obs.normal_maps[0, 0]), pixels[0], obs.landmarks[0, 0],
-                       visible=result.visible[0, 0], path=report.overlay_path)
+        staged = []
+        try:
+            for target in (mesh_path, overlay_path):
+                staged.append((temporary_beside(target), target))
+            result.export(staged[0][0])
+            draw_alignment(normal_map_to_image(obs.normal_maps[0, 0]), pixels[0], obs.landmarks[0, 0],
+                           visible=result.visible[0, 0], path=staged[1][0])
+            publish_together(staged)
+        except BaseException:
+            for part, _ in staged:
+                part.unlink(missing_ok=True)
+            raise
+        report.mesh_path, report.overlay_path = mesh_path, overlay_path
     return report

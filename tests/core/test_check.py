@@ -146,3 +146,19 @@ def test_outward_share_of_closed_open_and_flat_meshes():
         assert outward_share(tilted.float(), faces) == 0.0
         MorphableModel(tilted, torch.zeros(1, n * n, 3, dtype=torch.float64), faces)
     assert outward_share(torch.rand(3, 3), torch.tensor([[0, 1, 2]])) == 0.0  # one triangle: no inside
+
+
+def test_huge_integers_and_non_tensors_are_named():
+    """float(10**400) raised a bare OverflowError; a numpy array reached torch internals."""
+    import numpy as np
+
+    from facenormals.core.check import check_all_finite, check_finite, check_floating, check_nonnegative, check_positive, check_real
+
+    for check in (check_real, check_nonnegative, check_positive):
+        with pytest.raises(ValueError, match="min_facing: expected a finite number, got an integer of 401 digits"):
+            check(10**400, "min_facing")
+    for check in (check_finite, check_floating):
+        with pytest.raises(ValueError, match="x: expected a torch.Tensor, got ndarray"):
+            check(np.array([np.nan]), "x")
+    with pytest.raises(ValueError, match="y: expected a torch.Tensor, got list"):
+        check_all_finite(x=torch.zeros(2), y=[1.0])

@@ -151,7 +151,8 @@ def check_same_dtype_device(reference: Tensor, reference_name: str, **tensors: T
 
 
 def check_floating(x: Tensor, name: str) -> None:
-    """Raise ``ValueError`` unless ``x`` has a floating-point dtype."""
+    """Raise ``ValueError`` unless ``x`` is a tensor with a floating-point dtype."""
+    check_tensor(x, name)
     if not torch.is_floating_point(x):
         raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
 
@@ -193,6 +194,7 @@ def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
         ...
         ValueError: zbuffer: expected no NaN values, got 1 NaN entries
     """
+    check_tensor(x, name)
     if torch.compiler.is_compiling() or is_functorch_wrapped_tensor(x):
         return
     if not allow_inf and bool(torch.isfinite(x.sum())):  # fast path: a finite sum has no NaN or inf
@@ -216,6 +218,8 @@ def check_all_finite(**tensors: Tensor) -> None:
         ...
         ValueError: angles: expected finite values, got 1 NaN or infinite entries
     """
+    for name, x in tensors.items():
+        check_tensor(x, name)
     if torch.compiler.is_compiling():
         return
     tensors = {name: x for name, x in tensors.items() if not is_functorch_wrapped_tensor(x)}
@@ -241,10 +245,19 @@ def check_nonnegative(value: object, name: str) -> float:
     """
     if isinstance(value, bool) or not isinstance(value, Real):
         raise ValueError(f"{name}: expected a real number, got {type(value).__name__}")
-    number = float(value)
+    number = _as_float(value, name)
     if not math.isfinite(number) or number < 0:
         raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
     return number
+
+
+def _as_float(value: Real, name: str) -> float:
+    """``float(value)``, an integer too large for a float named as ``name``'s error."""
+    try:
+        return float(value)
+    except OverflowError:
+        raise ValueError(f"{name}: expected a finite number, got an integer of {len(str(abs(int(value))))} "
+                         "digits") from None
 
 
 def check_real(value: object, name: str) -> float:
@@ -263,7 +276,7 @@ def check_real(value: object, name: str) -> float:
         value = value.item()
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
         raise ValueError(f"{name}: expected a real number, got {type(value).__name__} {value!r}")
-    number = float(value)
+    number = _as_float(value, name)
     if not math.isfinite(number):
         raise ValueError(f"{name}: expected a finite number, got {value!r}")
     return number

@@ -77,14 +77,15 @@ def publish(temporary: str | Path, path: str | Path, durable: bool = True) -> Pa
 
 
 def _finish(temporary: Path, umask: int, durable: bool) -> None:
-    """Give ``temporary`` a new file's permissions and, if ``durable``, flush its data to disk."""
-    os.chmod(temporary, 0o666 & ~umask)
+    """If ``durable``, flush ``temporary``'s data to disk; then give it a new file's permissions (in
+    this order: a umask without the owner's write bit would forbid the flush's opening for writing)."""
     if durable:
         handle = os.open(temporary, os.O_RDWR)  # Windows flushes only handles open for writing
         try:
             os.fsync(handle)
         finally:
             os.close(handle)
+    os.chmod(temporary, 0o666 & ~umask)
 
 
 def _sync_folder(folder: Path) -> None:
@@ -139,8 +140,11 @@ def publish_together(pairs: list[tuple[Path, Path]], durable: bool = True) -> li
                 backup = temporary_beside(path)
                 try:
                     os.replace(path, backup)
-                except BaseException:
-                    backup.unlink(missing_ok=True)
+                except BaseException:  # e.g. Ctrl-C, which may arrive after the rename
+                    if path.exists():
+                        backup.unlink(missing_ok=True)
+                    else:
+                        os.replace(backup, path)
                     raise
             done.append((path, backup))
             os.replace(temporary, path)

@@ -20,7 +20,7 @@ ICT_ARCHIVE = "ict_face_head.npz"
 
 def cache_dir() -> Path:
     """The cache folder: ``$FACENORMALS_HOME``, default ``~/.cache/facenormals``."""
-    return Path(os.environ.get("FACENORMALS_HOME", Path.home() / ".cache" / "facenormals"))
+    return Path(os.environ.get("FACENORMALS_HOME") or Path.home() / ".cache" / "facenormals")  # empty: unset
 
 
 def find_ict_archive() -> Path | None:

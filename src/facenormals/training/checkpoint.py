@@ -42,6 +42,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise ValueError(f"{path}: not a readable checkpoint ({describe_load_error(error)})") from None
     if not isinstance(state, dict) or state.get("format") != "facenormals-train":
         raise ValueError(f"{path}: not a facenormals training checkpoint")
+    if not isinstance(state.get("config"), dict):  # every reader takes the run's settings from it
+        raise ValueError(f"{path}: a facenormals training checkpoint without its settings ('config'); it cannot "
+                         "be resumed or exported")
     return state
 
 
