@@ -41,6 +41,13 @@ def test_single_view_beats_the_mean_head_and_landmarks_only(model, head, tmp_pat
     assert set(result.energies) == {"normals", "landmarks", "prior", "intrinsics_prior"}
     assert result.export(tmp_path / "fit.ply").exists()
     assert "yaw" in result.summary()
+    for call, name in ((lambda i: result.export(tmp_path / "x.ply", subject=i), "subject"),
+                       (lambda i: result.summary(i), "subject"), (lambda i: result.camera_vertices(i), "view")):
+        with pytest.raises(ValueError, match=rf"{name}: expected an index in \[0, 1\), got 1"):
+            call(1)
+        for index in (-1, True):  # -1 picked the last subject silently
+            with pytest.raises(ValueError, match=f"{name}: expected an integer"):
+                call(index)
 
 
 def test_three_views_are_not_worse_than_one(model, head):
@@ -310,3 +317,18 @@ def test_landmark_count_errors_explain_the_order(model, head):
     bare = MorphableModel(model.mean, model.shape_basis, model.faces, shape_std=model.shape_std)
     with pytest.raises(ValueError, match="has 0 named landmarks; at least 4 are needed"):
         fit_head(obs.normal_maps, obs.landmarks, bare)
+
+
+def test_grid_subset_checks_its_inputs():
+    """A NaN or infinite cell, or a NaN vertex, kept a single vertex silently."""
+    from facenormals.fitting import grid_subset
+
+    vertices = torch.rand(50, 3, dtype=torch.float64) * 100
+    for cell in (float("nan"), float("inf"), "1"):
+        with pytest.raises(ValueError, match="cell: expected a"):
+            grid_subset(vertices, cell)
+    bad = vertices.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="vertices: expected finite values"):
+        grid_subset(bad, 5.0)
+    assert grid_subset(vertices[:0], 5.0).shape == (0,)

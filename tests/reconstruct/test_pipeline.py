@@ -22,6 +22,7 @@ from facenormals.reconstruct import (
     PhotoView,
     Reconstruction,
     fit_inputs,
+    landmark_channels,
     predict_maps,
     reconstruct_views,
     write_reconstruction,
@@ -143,6 +144,22 @@ def test_fit_inputs_checks_its_inputs(oracle):
                        torch.zeros(1, 4, dtype=torch.bool))
     with pytest.raises(ValueError, match="landmark channels"):
         fit_inputs(maps, model)
+
+
+def test_fit_inputs_leave_out_the_landmarks_not_found(oracle):
+    """Finite points marked found=False went into the fit (params.json wrote them as None)."""
+    model = oracle[0]
+    g = torch.Generator().manual_seed(0)
+    maps = NetworkMaps(torch.zeros(1, 3, 128, 128), torch.zeros(1, 24, 128, 128),
+                       torch.rand(1, 24, 2, generator=g) * 128, torch.ones(1, 24, dtype=torch.bool))
+    maps.found[0, :6] = False
+    inputs = fit_inputs(maps, model, drop_hidden=False)
+    channels = landmark_channels(model)
+    expected = ~maps.found[:, channels]
+    assert torch.equal(torch.isnan(inputs.landmarks).all(-1), expected)
+    maps.found = maps.found.float()
+    with pytest.raises(ValueError, match="maps.found: expected a bool tensor"):
+        fit_inputs(maps, model, drop_hidden=False)
 
 
 def test_landmark_channels_are_matched_by_name(oracle):

@@ -48,6 +48,9 @@ class FitResult:
             included (NaN for a view without landmarks).
         landmark_median_px: ``(B, V)`` median reprojection error: not moved by the few spurious
             landmarks that the Cauchy weights ignore.
+        prealignment_rms_px: ``(B, V)`` landmark RMS of the pre-alignment (NaN when ``initial_pose``
+            was given).
+        timings: seconds of the pre-alignment (``prealign_s``) and of the whole fit (``total_s``).
 
     ``energies`` are the terms as minimised in the last round: ``energies["normals"]`` is λN·EN
     over that round's vertices (its grid subset, visible and facing the camera by ``min_facing``)
@@ -74,17 +77,26 @@ class FitResult:
     prealignment_rms_px: Tensor
     timings: dict[str, float] = field(default_factory=dict)
 
+    def _index(self, value: object, name: str, count: int) -> int:
+        index = check_integer(value, name, minimum=0)  # -1 would pick the last one silently
+        if index >= count:
+            raise ValueError(f"{name}: expected an index in [0, {count}), got {index}")
+        return index
+
     def camera_vertices(self, view: int = 0) -> Tensor:
         """Vertices in the camera frame of ``view``: ``(B, N, 3)``."""
+        view = self._index(view, "view", self.rotation.shape[1])
         return transform_points(self.vertices, self.rotation[:, view], self.translation[:, view])
 
     def export(self, path: str | Path, subject: int = 0) -> Path:
         """Write subject ``subject``'s mesh (model frame, mm) as ``.ply``/``.obj``."""
         from facenormals.mesh import save_mesh
 
-        return save_mesh(path, self.vertices[subject], self.faces)
+        return save_mesh(path, self.vertices[self._index(subject, "subject", self.vertices.shape[0])], self.faces)
 
     def summary(self, subject: int = 0) -> str:
+        """One line: status, iterations, energies and each view's yaw, focal length and landmark RMS."""
+        subject = self._index(subject, "subject", self.vertices.shape[0])
         e = {k: float(v[subject]) for k, v in self.energies.items()}
         terms = ", ".join(f"{k} {v:.4g}" for k, v in e.items())
         views = ", ".join(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_shape
+from facenormals.core.check import check_finite, check_floating, check_real, check_shape
 
 __all__ = ["grid_subset"]
 
@@ -29,6 +29,11 @@ def grid_subset(vertices: Tensor, cell: float) -> Tensor:
         [False, True, True]
     """
     check_shape(vertices, ["N", 3], "vertices")
+    check_floating(vertices, "vertices")
+    check_finite(vertices, "vertices")
+    cell = check_real(cell, "cell")  # NaN or inf kept a single vertex
+    if vertices.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.bool, device=vertices.device)
     if cell <= 0:
         return torch.ones(vertices.shape[0], dtype=torch.bool, device=vertices.device)
     key = torch.floor(vertices / cell)

@@ -263,7 +263,10 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
                          f"got {dims['C']}")
     dtype = model.mean.dtype
     intrinsics = torch.tensor([focal, (S - 1) / 2, (S - 1) / 2], dtype=dtype).expand(V, 3)
+    if maps.found.dtype != torch.bool:
+        raise ValueError(f"maps.found: expected a bool tensor, got dtype {maps.found.dtype}")
     landmarks, found = maps.landmarks[:, channels].to(dtype), maps.found[:, channels]
+    landmarks = landmarks.masked_fill(~found[..., None], float("nan"))  # a landmark not found is no landmark
     dropped, pose = torch.zeros_like(found), None
     if drop_hidden:
         kept, pose = drop_hidden_landmarks(landmarks, found, model, intrinsics, (S, S))
