@@ -19,11 +19,12 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_floating, check_integer, check_real, check_shape, check_tensor
-from facenormals.fitting.pose import prealign_pose, require_pose_landmarks
+from facenormals.fitting.pose import FACING_AWAY_COSINE, facing_cosine, prealign_pose, require_pose_landmarks
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
 from facenormals.fitting.subsample import grid_subset
 from facenormals.geometry import euler_to_rotation_matrix, transform_points
+from facenormals.mesh.normals import vertex_normals
 from facenormals.models import MorphableModel
 from facenormals.optim import LMStatus, levenberg_marquardt
 
@@ -171,6 +172,67 @@ def _check_normal_maps_encoding(normal_maps: Tensor, foreground: Tensor) -> None
                     f"normal_maps: {where} has only {100 * facing:.0f} % of its normals facing the camera "
                     "(z < 0 in OpenCV's frame: x right, y down, z forward); a map in an OpenGL frame "
                     "(y up, z towards the viewer) needs its y and z negated (docs/conventions.md)")
+
+
+#: A view whose map's x or y normal components make a cosine below this with those of the mean head
+#: at its pre-aligned pose has that axis flipped; correct maps (exact or the network's) score 0.8-1.
+FLIPPED_AXIS_COSINE = -0.3
+
+
+def _normal_axis_cosines(normal_maps: Tensor, foreground: Tensor, model: MorphableModel, angles: Tensor,
+                         translation: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:
+    """Per view ``(B V, 2)``: the cosine of the map's x (and y) normal components with the mean head's,
+    posed by ``angles`` and ``translation``, at the nearest pixels of its front-facing vertices inside
+    the map's foreground; and ``(B V,)`` how many such pixels there were."""
+    B, V, _, H, W = normal_maps.shape
+    dtype = normal_maps.dtype
+    normals = model._derived("mean_normals", (model.mean, model.faces),
+                             lambda: vertex_normals(model.mean[None], model.faces)[0]).to(dtype)
+    R = euler_to_rotation_matrix(angles.reshape(-1, 3).to(dtype))  # (BV, 3, 3)
+    camera = (model.mean.to(dtype)[None] + translation.reshape(-1, 1, 3).to(dtype)) @ R.transpose(1, 2)
+    n_camera = normals[None] @ R.transpose(1, 2)
+    K = intrinsics.reshape(-1, 3).to(dtype)
+    z = camera[..., 2].clamp_min(1e-6)
+    u = torch.round(K[:, None, 0] * camera[..., 0] / z + K[:, None, 1])
+    v = torch.round(K[:, None, 0] * camera[..., 1] / z + K[:, None, 2])
+    seen = (camera[..., 2] > 0) & ((n_camera * camera).sum(-1) < 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    index = v.clamp(0, H - 1).long() * W + u.clamp(0, W - 1).long()
+    sampled = torch.gather(normal_maps.reshape(B * V, 3, H * W), 2, index[:, None].expand(-1, 3, -1)).transpose(1, 2)
+    seen &= torch.gather(foreground.reshape(B * V, H * W), 1, index)
+    weight = seen[..., None].to(dtype)
+    a, c = sampled[..., :2] * weight, n_camera[..., :2] * weight
+    cosine = (a * c).sum(1) / (a.norm(dim=1) * c.norm(dim=1)).clamp_min(1e-12)
+    return cosine, seen.sum(1)
+
+
+def _check_normal_axes(normal_maps: Tensor, foreground: Tensor, model: MorphableModel, angles: Tensor,
+                       translation: Tensor, intrinsics: Tensor, landmark_mask: Tensor) -> None:
+    """Refuse a view whose map has its x or y axis flipped (a mirrored map, y up): such maps pass
+    :func:`_check_normal_maps_encoding` and fit without error to a head near the mean. Views whose
+    pre-aligned head faces away from the camera are left alone: their landmarks, not their map, are
+    wrong (spurious detections in a photo without a face), which callers such as
+    :func:`~facenormals.reconstruct.reconstruct_views` report."""
+    cosine, count = _normal_axis_cosines(normal_maps, foreground, model, angles, translation, intrinsics)
+    dtype, views, L = normal_maps.dtype, cosine.shape[0], model.landmark_indices.shape[0]
+    facing = torch.ones(views, dtype=torch.bool, device=cosine.device)  # a model without landmarks: a given pose
+    if L:
+        R = euler_to_rotation_matrix(angles.reshape(-1, 3).to(dtype))
+        facing = facing_cosine(model.mean[model.landmark_indices].to(dtype).expand(views, L, 3),
+                               model.landmark_normals().to(dtype).expand(views, L, 3), R,
+                               translation.reshape(-1, 3).to(dtype), landmark_mask.reshape(views, L)) <= FACING_AWAY_COSINE
+    flipped = (cosine < FLIPPED_AXIS_COSINE) & (count[:, None] >= 50) & facing[:, None]  # 50: enough face to tell
+    if not bool(flipped.any()):
+        return
+    view, axis = (int(i) for i in flipped.nonzero()[0])
+    V = normal_maps.shape[1]
+    b, v = divmod(view, V)
+    where = f"view {v}{f' of subject {b}' if normal_maps.shape[0] > 1 else ''}"
+    name = "xy"[axis]
+    raise ValueError(
+        f"normal_maps: {where}'s {name} components point against those of the head pre-aligned to its landmarks "
+        f"(cosine {float(cosine[view, axis]):.2f} over {int(count[view])} pixels): is the map's {name} axis flipped "
+        f"({'a mirrored map' if name == 'x' else 'y up'}; facenormals expects OpenCV's camera frame, x right and y "
+        "down, docs/conventions.md), or do the landmarks not belong to this map?")
 
 
 def fit_head(
@@ -339,6 +401,7 @@ def fit_head(
             raise ValueError(f"normal_maps, landmarks: view {v}{f' of subject {b}' if B > 1 else ''} has neither a "
                              "face in its normal map nor a landmark; nothing in it constrains the fit")
     t_pre = time.perf_counter()
+    _check_normal_axes(normal_maps, foreground, model, angles, translation, intrinsics, landmark_mask)
 
     # 2. Rounds of visibility + LM.
     # Per subject, so that a batch fits each subject exactly as alone.
