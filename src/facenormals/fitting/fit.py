@@ -24,7 +24,6 @@ from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
 from facenormals.fitting.subsample import grid_subset
 from facenormals.geometry import euler_to_rotation_matrix, transform_points
-from facenormals.mesh.normals import vertex_normals
 from facenormals.models import MorphableModel
 from facenormals.optim import LMStatus, levenberg_marquardt
 
@@ -186,8 +185,7 @@ def _normal_axis_cosines(normal_maps: Tensor, foreground: Tensor, model: Morphab
     the map's foreground; and ``(B V,)`` how many such pixels there were."""
     B, V, _, H, W = normal_maps.shape
     dtype = normal_maps.dtype
-    normals = model._derived("mean_normals", (model.mean, model.faces),
-                             lambda: vertex_normals(model.mean[None], model.faces)[0]).to(dtype)
+    normals = model.mean_normals().to(dtype)
     R = euler_to_rotation_matrix(angles.reshape(-1, 3).to(dtype))  # (BV, 3, 3)
     camera = (model.mean.to(dtype)[None] + translation.reshape(-1, 1, 3).to(dtype)) @ R.transpose(1, 2)
     n_camera = normals[None] @ R.transpose(1, 2)

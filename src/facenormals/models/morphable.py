@@ -230,6 +230,20 @@ class MorphableModel(nn.Module):
         return self._derived(("basis_matrix", with_expression, dtype), parts, lambda: torch.cat(
             [p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1).to(dtype).contiguous())
 
+    def mean_normals(self) -> Tensor:
+        """``(N, 3)`` outward unit vertex normals of the mean shape (model frame); computed once and
+        reused until a buffer changes.
+
+        Example:
+            >>> from facenormals.models import builtin_head_model
+            >>> builtin_head_model().mean_normals().shape
+            torch.Size([10242, 3])
+        """
+        from facenormals.mesh.normals import vertex_normals
+
+        return self._derived("mean_normals", (self.mean, self.faces),
+                             lambda: vertex_normals(self.mean[None], self.faces)[0])
+
     def landmark_normals(self) -> Tensor:
         """``(L, 3)`` outward unit vertex normals of the mean shape at the landmarks (model frame), e.g.
         for :func:`~facenormals.fitting.prealign_pose`'s ``model_normals``; computed once and reused
@@ -241,10 +255,8 @@ class MorphableModel(nn.Module):
             >>> float(model.landmark_normals()[model.landmark_names.index("nose_tip"), 2]) < -0.9  # -z: forward
             True
         """
-        from facenormals.mesh.normals import vertex_normals
-
         return self._derived("landmark_normals", (self.mean, self.faces, self.landmark_indices),
-                             lambda: vertex_normals(self.mean[None], self.faces)[0, self.landmark_indices])
+                             lambda: self.mean_normals()[self.landmark_indices])
 
     def _derived(self, slot: object, sources: Sequence[Tensor], build: Callable[[], Tensor]) -> Tensor:
         """``build()``, kept under ``slot`` until one of its ``sources`` changes: is replaced (``.to()``,
