@@ -346,3 +346,10 @@ def test_a_map_with_a_flipped_axis_is_refused_naming_the_view(model, head, axis,
     with pytest.raises(ValueError, match=f"normal_maps: view 1's {name} components point against those of the head "
                                          f"pre-aligned to its landmarks .* is the map's {name} axis flipped"):
         fit_head(maps, obs.landmarks, model, intrinsics=obs.intrinsics)
+
+
+def test_flags_must_be_booleans(model, head):
+    obs = render_oracle_views(model, head, [0.0])
+    for name in ("fit_intrinsics", "fit_expression"):
+        with pytest.raises(ValueError, match=f"{name}: expected True or False, got 'no'"):
+            fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, **{name: "no"})

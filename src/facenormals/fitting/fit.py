@@ -316,6 +316,9 @@ def fit_head(
     import time
 
     start = time.perf_counter()
+    for name, flag in (("fit_intrinsics", fit_intrinsics), ("fit_expression", fit_expression)):
+        if not isinstance(flag, (bool, np.bool_)):  # "no" is truthy
+            raise ValueError(f"{name}: expected True or False, got {flag!r}")
     rounds = check_integer(rounds, "rounds", minimum=1)
     iterations_per_round = check_integer(iterations_per_round, "iterations_per_round", minimum=1)
     visibility_rounds = check_integer(visibility_rounds, "visibility_rounds", minimum=1)
