@@ -162,3 +162,14 @@ def test_huge_integers_and_non_tensors_are_named():
             check(np.array([np.nan]), "x")
     with pytest.raises(ValueError, match="y: expected a torch.Tensor, got list"):
         check_all_finite(x=torch.zeros(2), y=[1.0])
+
+
+def test_zero_dimensional_tensors_are_numbers_and_others_are_not():
+    from facenormals.core.check import check_integer, check_nonnegative, check_real
+
+    assert check_nonnegative(torch.tensor(0.5), "weight") == 0.5 == check_real(torch.tensor(0.5), "weight")
+    assert check_integer(torch.tensor(3), "count") == 3
+    with pytest.raises(ValueError, match="count: expected an integer, got Tensor"):
+        check_integer(torch.tensor([[3]]), "count")
+    with pytest.raises(ValueError, match="weight: expected a real number"):
+        check_nonnegative(torch.tensor([0.5, 1.0]), "weight")

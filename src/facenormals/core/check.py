@@ -243,9 +243,10 @@ def check_nonnegative(value: object, name: str) -> float:
         >>> check_nonnegative(0.5, "weight")
         0.5
     """
-    if isinstance(value, bool) or not isinstance(value, Real):
+    number = check_real(value, name) if isinstance(value, Tensor) else value  # a 0-d tensor, as check_real takes
+    if isinstance(number, bool) or not isinstance(number, Real):
         raise ValueError(f"{name}: expected a real number, got {type(value).__name__}")
-    number = _as_float(value, name)
+    number = _as_float(number, name)
     if not math.isfinite(number) or number < 0:
         raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
     return number
@@ -312,7 +313,7 @@ def check_integer(value: object, name: str, minimum: int | None = None) -> int:
         ...
         ValueError: radius: expected an integer, got float 1.5
     """
-    if isinstance(value, (bool, np.bool_)) or (isinstance(value, Tensor) and value.dtype == torch.bool):
+    if isinstance(value, (bool, np.bool_)) or (isinstance(value, Tensor) and (value.dtype == torch.bool or value.dim())):
         raise ValueError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
     try:
         number = operator.index(value)
