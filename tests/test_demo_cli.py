@@ -328,3 +328,15 @@ def test_an_empty_facenormals_home_is_unset(monkeypatch):
 
     monkeypatch.setenv("FACENORMALS_HOME", "")
     assert cache_dir() == Path.home() / ".cache" / "facenormals"
+
+
+def test_synth_errors_name_the_command_options(tmp_path, capsys):
+    """The library's parameter names (shard_size, config.background_folders) were printed as they are."""
+    for extra, message in ((["--shard-size", "0"], "--shard-size: expected an integer >= 1"),
+                           (["--backgrounds", str(tmp_path / "none")], f"--backgrounds: {tmp_path / 'none'} is not a folder"),
+                           (["--identity-scale", "-1"], "--identity-scale: expected a finite number >= 0"),
+                           (["--rank", "3", "--world-size", "2"], "--rank: expected 0 <= rank < world_size = 2")):
+        assert main(["synth", "--count", "2", "--out", str(tmp_path / "d"), "--model", "builtin", "--quiet",
+                     *extra]) == 1
+        assert f"facenormals synth: error: {message}" in capsys.readouterr().err, extra
+    assert not (tmp_path / "d").exists()

@@ -161,14 +161,26 @@ def _json_safe(value):
     return value
 
 
+#: write_dataset's and SynthConfig's parameters as `facenormals synth` options, for its errors.
+_SYNTH_OPTIONS = {"count": "--count", "workers": "--workers", "seed": "--seed", "shard_size": "--shard-size",
+                  "out_dir": "--out", "config.background_folders": "--backgrounds", "rank": "--rank",
+                  "world_size": "--world-size", "identity_scale": "--identity-scale"}
+
+
 def _cmd_synth(args: argparse.Namespace) -> int:
     from facenormals.data import SynthConfig, write_dataset
 
     _check_writable(args.out, "--out", folder=True)
-    config = SynthConfig(identity_scale=args.identity_scale, background_folders=tuple(args.backgrounds))
-    summary = write_dataset(args.out, args.count, workers=args.workers, seed=args.seed, model_spec=args.model,
-                            shard_size=args.shard_size, progress=not args.quiet, rank=args.rank,
-                            world_size=args.world_size, config=config)
+    try:
+        config = SynthConfig(identity_scale=args.identity_scale, background_folders=tuple(args.backgrounds))
+        summary = write_dataset(args.out, args.count, workers=args.workers, seed=args.seed, model_spec=args.model,
+                                shard_size=args.shard_size, progress=not args.quiet, rank=args.rank,
+                                world_size=args.world_size, config=config)
+    except ValueError as error:  # the library names its parameters; name the command's options instead
+        name, _, rest = str(error).partition(": ")
+        if name in _SYNTH_OPTIONS:
+            raise ValueError(f"{_SYNTH_OPTIONS[name]}: {rest}") from None
+        raise
     print(f"{summary.root}: wrote {summary.shards_written} shard(s) ({summary.samples} samples, "
           f"{summary.samples_per_second:.1f}/s), {summary.shards_skipped} already complete")
     return 0
