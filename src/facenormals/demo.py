@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from facenormals.core.check import check_integer
-from facenormals.core.files import publish_together, temporary_beside
+from facenormals.core.files import StagedFiles
 from facenormals.eval import evaluate_reconstruction
 from facenormals.fitting import fit_head
 from facenormals.fitting.oracle import render_oracle_views
@@ -103,17 +103,14 @@ def run_demo(
         mesh_path, overlay_path = out / "demo_fit.ply", out / "demo_overlay.png"
         R = euler_to_rotation_matrix(result.angles[0])
         pixels, _ = project_points(result.vertices, R, result.translation[0], result.intrinsics[0])
-        staged = []
+        staged = StagedFiles()
         try:
-            for target in (mesh_path, overlay_path):
-                staged.append((temporary_beside(target), target))
-            result.export(staged[0][0])
-            draw_alignment(normal_map_to_image(obs.normal_maps[0, 0]), pixels[0], obs.landmarks[0, 0],
-                           visible=result.visible[0, 0], path=staged[1][0])
-            publish_together(staged)
-        except BaseException:
-            for part, _ in staged:
-                part.unlink(missing_ok=True)
-            raise
+            staged.write(mesh_path, result.export)
+            staged.write(overlay_path, lambda part: draw_alignment(
+                normal_map_to_image(obs.normal_maps[0, 0]), pixels[0], obs.landmarks[0, 0],
+                visible=result.visible[0, 0], path=part))
+            staged.commit()
+        finally:
+            staged.discard()
         report.mesh_path, report.overlay_path = mesh_path, overlay_path
     return report

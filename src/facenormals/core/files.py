@@ -11,9 +11,9 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
-__all__ = ["atomic_write", "publish", "publish_together", "temporary_beside"]
+__all__ = ["StagedFiles", "atomic_write", "publish", "publish_together", "temporary_beside"]
 
 #: Suffix of the temporary files (before the target's own suffix, which some writers need).
 PART = ".part"
@@ -162,6 +162,51 @@ def publish_together(pairs: list[tuple[Path, Path]], durable: bool = True) -> li
         for folder in dict.fromkeys(path.parent for _, path in pairs):
             _sync_folder(folder)
     return [path for _, path in pairs]
+
+
+class StagedFiles:
+    """Files written under unique temporary names in their folders, renamed into place together by
+    :meth:`commit` (:func:`publish_together`): a failure before or during it (an error, a full disk,
+    Ctrl-C) leaves every earlier file as it was, and two runs into one folder never rename each
+    other's half-written files. Call :meth:`discard` when done (e.g. in ``finally``): it removes the
+    temporaries of files not committed.
+
+    Example:
+        >>> import tempfile
+        >>> folder = Path(tempfile.mkdtemp())
+        >>> staged = StagedFiles()
+        >>> try:
+        ...     _ = staged.write(folder / "a.txt", lambda part: part.write_text("a"))
+        ...     _ = staged.write(folder / "b.txt", lambda part: part.write_text("b"))
+        ...     [p.name for p in staged.commit()]
+        ... finally:
+        ...     staged.discard()
+        ['a.txt', 'b.txt']
+    """
+
+    def __init__(self) -> None:
+        self.files: list[tuple[Path, Path]] = []
+
+    def write(self, path: Path, write: Callable[[Path], object]) -> Path:
+        """Call ``write(temporary)`` for ``path``'s content; ``path`` is published by :meth:`commit`."""
+        if path.is_dir():  # found now, not when renaming after other files were replaced
+            raise OSError(f"{path}: is a folder, cannot write the file there")
+        part = temporary_beside(path)
+        self.files.append((part, path))
+        write(part)
+        return path
+
+    def commit(self) -> list[Path]:
+        """Publish every written file, all together or none (:func:`publish_together`)."""
+        done = publish_together(self.files)
+        self.files = []
+        return done
+
+    def discard(self) -> None:
+        """Remove the temporaries of the files not committed."""
+        for tmp, _ in self.files:
+            tmp.unlink(missing_ok=True)
+        self.files = []
 
 
 @contextmanager

@@ -174,19 +174,19 @@ def _check_normal_maps_encoding(normal_maps: Tensor, foreground: Tensor) -> None
 
 
 #: A view whose map's x or y normal components make a cosine below this with those of the mean head
-#: at its pre-aligned pose has that axis flipped; correct maps (exact or the network's) score 0.8-1.
+#: at its pre-aligned pose has that axis flipped; correct maps (exact or the network's) score 0.5-0.9
+#: (x) and 0.5-0.6 (y), maps with the axis flipped -0.5 to -0.9.
 FLIPPED_AXIS_COSINE = -0.3
 
 
-def _normal_axis_cosines(normal_maps: Tensor, foreground: Tensor, model: MorphableModel, angles: Tensor,
+def _normal_axis_cosines(normal_maps: Tensor, foreground: Tensor, model: MorphableModel, R: Tensor,
                          translation: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:
     """Per view ``(B V, 2)``: the cosine of the map's x (and y) normal components with the mean head's,
-    posed by ``angles`` and ``translation``, at the nearest pixels of its front-facing vertices inside
-    the map's foreground; and ``(B V,)`` how many such pixels there were."""
+    posed by the rotations ``R`` ``(B V, 3, 3)`` and ``translation``, at the nearest pixels of its
+    front-facing vertices inside the map's foreground; and ``(B V,)`` how many such pixels there were."""
     B, V, _, H, W = normal_maps.shape
     dtype = normal_maps.dtype
     normals = model.mean_normals().to(dtype)
-    R = euler_to_rotation_matrix(angles.reshape(-1, 3).to(dtype))  # (BV, 3, 3)
     camera = (model.mean.to(dtype)[None] + translation.reshape(-1, 1, 3).to(dtype)) @ R.transpose(1, 2)
     n_camera = normals[None] @ R.transpose(1, 2)
     K = intrinsics.reshape(-1, 3).to(dtype)
@@ -210,11 +210,12 @@ def _check_normal_axes(normal_maps: Tensor, foreground: Tensor, model: Morphable
     pre-aligned head faces away from the camera are left alone: their landmarks, not their map, are
     wrong (spurious detections in a photo without a face), which callers such as
     :func:`~facenormals.reconstruct.reconstruct_views` report."""
-    cosine, count = _normal_axis_cosines(normal_maps, foreground, model, angles, translation, intrinsics)
-    dtype, views, L = normal_maps.dtype, cosine.shape[0], model.landmark_indices.shape[0]
+    dtype = normal_maps.dtype
+    R = euler_to_rotation_matrix(angles.reshape(-1, 3).to(dtype))  # (B V, 3, 3)
+    cosine, count = _normal_axis_cosines(normal_maps, foreground, model, R, translation, intrinsics)
+    views, L = cosine.shape[0], model.landmark_indices.shape[0]
     facing = torch.ones(views, dtype=torch.bool, device=cosine.device)  # a model without landmarks: a given pose
     if L:
-        R = euler_to_rotation_matrix(angles.reshape(-1, 3).to(dtype))
         facing = facing_cosine(model.mean[model.landmark_indices].to(dtype).expand(views, L, 3),
                                model.landmark_normals().to(dtype).expand(views, L, 3), R,
                                translation.reshape(-1, 3).to(dtype), landmark_mask.reshape(views, L)) <= FACING_AWAY_COSINE

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
-from facenormals.core.files import publish_together, temporary_beside
+from facenormals.core.files import StagedFiles
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import (FACING_AWAY_COSINE, FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks,
                                  facing_cosine, fit_head)
@@ -393,22 +393,8 @@ class Reconstruction:
     model_spec: str | None = None
 
 
-class _Staged:
-    """Files written under unique temporary names in their folder, renamed into place together by
-    :meth:`commit` (:func:`~facenormals.core.files.publish_together`): a failure before or during
-    it (an error, a full disk, Ctrl-C) leaves every earlier file as it was, and two runs into one
-    folder never rename each other's half-written files."""
-
-    def __init__(self) -> None:
-        self.files: list[tuple[Path, Path]] = []
-
-    def write(self, path: Path, write: Callable[[Path], object]) -> Path:
-        if path.is_dir():  # found now, not when renaming after other files were replaced
-            raise OSError(f"{path}: is a folder, cannot write the file there")
-        part = temporary_beside(path)
-        self.files.append((part, path))
-        write(part)
-        return path
+class _Staged(StagedFiles):
+    """:class:`~facenormals.core.files.StagedFiles` that also writes RGB images as PNG."""
 
     def png(self, path: Path, rgb: np.ndarray) -> Path:
         import cv2
@@ -418,16 +404,6 @@ class _Staged:
                 raise OSError(f"{path}: cannot write the PNG")
 
         return self.write(path, write)
-
-    def commit(self) -> list[Path]:
-        done = publish_together(self.files)  # all or none: an error or Ctrl-C midway puts the old files back
-        self.files = []
-        return done
-
-    def discard(self) -> None:
-        for tmp, _ in self.files:
-            tmp.unlink(missing_ok=True)
-        self.files = []
 
 
 def landmark_map_image(crop: np.ndarray, landmark_maps: Tensor, scale: int = 4) -> np.ndarray:
