@@ -273,6 +273,25 @@ def test_bad_elements_do_not_spoil_the_batch():
     assert result.cost[REGION_ROW] <= result.initial_cost[REGION_ROW]
     assert result.num_iterations == int(result.iterations.max())
 
+    # the residuals at the solution, as residual_fn gives them there
+    finite = torch.isfinite(result.cost)
+    assert not finite[NAN_ROW] and not torch.isfinite(result.residuals[NAN_ROW]).all()
+    assert torch.equal(result.residuals[finite], residual(result.x)[finite])
+    assert_close(0.5 * result.residuals[finite].square().sum(-1), result.cost[finite], rtol=1e-14, atol=0)
+
+
+def test_residuals_are_those_at_x_after_rejected_steps():
+    """``LMResult.residuals`` are the residuals at the returned ``x``, not at a rejected last trial:
+    Rosenbrock from (-1.2, 1) with Gauss-Newton first steps, stopped after every iteration count."""
+    x0 = torch.tensor([[-1.2, 1.0], [0.5, -2.0]], dtype=F64)
+    rejected_last = 0
+    for k in range(1, 25):
+        result = levenberg_marquardt(rosenbrock, x0, damping=0.0, max_iterations=k, ftol=0, xtol=0, gtol=0)
+        longer = levenberg_marquardt(rosenbrock, x0, damping=0.0, max_iterations=k - 1, ftol=0, xtol=0, gtol=0)
+        rejected_last += int(torch.equal(result.x, longer.x))
+        assert torch.equal(result.residuals, rosenbrock(result.x)), k
+    assert rejected_last > 0  # some runs did end on a rejected step
+
 
 @pytest.mark.parametrize("analytic", [True, False])
 def test_active_subset_matches_the_full_evaluation(analytic):
@@ -300,6 +319,7 @@ def test_active_subset_matches_the_full_evaluation(analytic):
     finite = torch.isfinite(full.cost)
     assert_close(subset.x, full.x, rtol=1e-12, atol=1e-14)
     assert_close(subset.cost[finite], full.cost[finite], rtol=1e-12, atol=1e-14)
+    assert_close(subset.residuals[finite], full.residuals[finite], rtol=1e-12, atol=1e-14)
     assert torch.equal(calls[0], rows)  # everyone at the start ...
     assert calls[-1].shape[0] < 5  # ... only the slowest at the end
     evaluated = torch.zeros_like(rows)
@@ -313,6 +333,29 @@ def test_active_subset_output_is_checked():
     x0 = torch.zeros(3, 2, dtype=F64)
     with pytest.raises(ValueError, match="residual_fn"):
         levenberg_marquardt(lambda x, index: rosenbrock(x)[:1], x0, active_subset=True)
+
+
+@pytest.mark.parametrize("change", ["shape", "dtype"])
+def test_outputs_are_checked_on_every_call_not_only_the_first(change):
+    """The loop's cheap re-check of later outputs still names a residual_fn or jacobian_fn whose
+    output changes shape or dtype after the first call."""
+    problem = ExponentialFit(batch=2)
+    for which in ("residual", "jacobian"):
+        calls = []
+
+        def changing(x, fn=getattr(problem, which)):
+            calls.append(1)
+            out = fn(x)
+            if len(calls) < 2:
+                return out
+            return out[:, :-1] if change == "shape" else out.float()
+
+        functions = {"jacobian_fn": problem.jacobian}
+        if which == "jacobian":
+            functions["jacobian_fn"] = changing
+        residual_fn = changing if which == "residual" else problem.residual
+        with pytest.raises(ValueError, match=f"{which}_fn output: expected"):
+            levenberg_marquardt(residual_fn, problem.x0, **functions)
 
 
 def test_normal_equations_fn_matches_jacobian_fn():

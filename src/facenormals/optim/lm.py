@@ -75,6 +75,8 @@ class LMResult:
         reasons: a human-readable reason for each element's status.
         num_iterations: the number of iterations the batched loop ran.
         damping: the final damping factor λ of each element, shape ``(B,)``.
+        residuals: :math:`r(x)` at the solution, shape ``(B, M)`` (what ``residual_fn`` returned
+            there; not finite for elements whose residuals were not finite at ``x0``).
     """
 
     x: Tensor
@@ -85,6 +87,7 @@ class LMResult:
     reasons: list[str]
     num_iterations: int
     damping: Tensor
+    residuals: Tensor
 
     @property
     def converged(self) -> Tensor:
@@ -131,6 +134,10 @@ class LMResult:
 def _check_output(
     value: object, shape: list, name: str, dims: dict[str, int], like: Tensor, other_dtype: torch.dtype | None = None
 ) -> None:
+    if (isinstance(value, Tensor) and value.dtype in (like.dtype, other_dtype) and value.device == like.device
+            and all(k in dims for k in shape if isinstance(k, str))
+            and value.shape == tuple(dims[k] if isinstance(k, str) else k for k in shape)):
+        return  # the common case, every call of a loop: checked without building messages
     check_shape(value, shape, name, dims)
     if value.dtype not in (like.dtype, other_dtype):  # type: ignore[union-attr]
         also = f" or {other_dtype} (jacobian_dtype)" if other_dtype not in (None, like.dtype) else ""
@@ -445,11 +452,19 @@ def _solve(
     iterations = torch.zeros(B, dtype=torch.long, device=device)
     eye = torch.eye(P, dtype=dtype, device=device)
 
+    def damping_scale(diag_max_: Tensor) -> Tensor:
+        """The damping matrix's diagonal D (see the docstring); inactive elements ignore it."""
+        if not marquardt:
+            return torch.ones_like(diag_max_)
+        floor = (info_.eps * diag_max_.amax(-1, keepdim=True)).clamp_min(info_.tiny)
+        return torch.maximum(diag_max_, floor)
+
     H, g = normal_equations(x, r, everyone)
     finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
     active = stop(active, (~finite_jac, _BAD_JACOBIAN), (g.abs().amax(-1) <= gtol, _GTOL))
     # Marquardt scaling: the running maximum of diag(JᵀJ) over the accepted points (Moré 1978).
     diag_max = H.diagonal(dim1=-2, dim2=-1).clone()
+    scale = damping_scale(diag_max)
 
     num_iterations = 0
     any_active = bool(active.any())
@@ -458,19 +473,15 @@ def _solve(
         iterations += active.long()
         act = active[:, None]
 
-        # Damped normal equations; inactive elements solve I δ = 0.
-        if marquardt:
-            floor = (info_.eps * diag_max.amax(-1, keepdim=True)).clamp_min(info_.tiny)
-            scale = torch.where(act, torch.maximum(diag_max, floor), 1.0)
-        else:
-            scale = torch.ones_like(g)
+        # Damped normal equations; inactive elements solve I δ = -g (always factorisable), and their
+        # step, predicted reduction and trial are discarded below.
         lam_d = lam[:, None] * scale
         A = torch.where(active[:, None, None], H + torch.diag_embed(lam_d), eye)
-        rhs = torch.where(act, -g, 0.0)
+        rhs = -g
         L, info = torch.linalg.cholesky_ex(A)
         step = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
         # L(0) - L(δ) = ½ δᵀ(λDδ - g) for the exact solution of the damped system.
-        pred = 0.5 * ((lam_d * step.square()).sum(-1) + (step * rhs).sum(-1))
+        pred = 0.5 * (step * (lam_d * step + rhs)).sum(-1)
         if bool(info.any()):  # inactive elements solve I δ = 0, which always factorises
             idx = (active & (info != 0)).nonzero().squeeze(1)
             A_bad, rhs_bad, H_bad = A[idx], rhs[idx], H[idx]
@@ -497,9 +508,9 @@ def _solve(
             r_trial = residuals(x_trial, everyone)
         cost_trial = half_sq(r_trial)
         actual = cost - cost_trial
-        trial_ok = torch.isfinite(cost_trial) & finite_step & torch.isfinite(pred)
+        trial_ok = active & torch.isfinite(cost_trial) & finite_step & torch.isfinite(pred)
         rho = torch.where(trial_ok, actual / pred.clamp_min(info_.tiny), -math.inf)
-        accepted = active & trial_ok & (rho > 0)
+        accepted = trial_ok & (rho > 0)
         rejected = active & ~accepted
 
         # Convergence tests on this step.
@@ -508,9 +519,10 @@ def _solve(
         edge = torch.where(accepted, False, edge | (active & ~trial_ok))
         small_step = torch.linalg.vector_norm(step, dim=-1) <= xtol * (torch.linalg.vector_norm(x, dim=-1) + xtol)
         no_move = (x_trial == x).all(-1)
-        small_reduction = accepted & (actual <= ftol * cost) & (rho > 0.25)
+        tiny = ftol * cost
+        small_reduction = accepted & (actual <= tiny) & (rho > 0.25)
         # MINPACK (lmder): predicted and actual relative changes both within ftol, rho <= 2.
-        small_reduction |= active & trial_ok & (actual.abs() <= ftol * cost) & (pred <= ftol * cost) & (rho <= 2.0)
+        small_reduction |= trial_ok & (actual.abs() <= tiny) & (pred <= tiny) & (rho <= 2.0)
 
         # Accept.
         x = torch.where(accepted[:, None], x_trial, x)
@@ -539,6 +551,7 @@ def _solve(
                 H = torch.where(need_jacobian[:, None, None], H_new, H)
                 g = torch.where(need_jacobian[:, None], g_new, g)
             diag_max = torch.maximum(diag_max, H.diagonal(dim1=-2, dim2=-1))
+            scale = damping_scale(diag_max)
             finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
             active = stop(active, (need_jacobian & ~finite_jac, _BAD_JACOBIAN),
                           (need_jacobian & (g.abs().amax(-1) <= gtol), _GTOL))
@@ -552,14 +565,15 @@ def _solve(
                 f"active {int(active.sum())}/{B}"
             )
 
-    status_table = torch.tensor([int(s) for s, _ in _REASONS], dtype=torch.long, device=device)
+    codes = code.tolist()
     return LMResult(
         x=x,
         cost=cost,
         initial_cost=initial_cost,
         iterations=iterations,
-        status=status_table[code],
-        reasons=[_REASONS[c][1] for c in code.tolist()],
+        status=torch.tensor([int(_REASONS[c][0]) for c in codes], dtype=torch.long, device=device),
+        reasons=[_REASONS[c][1] for c in codes],
         num_iterations=num_iterations,
         damping=lam,
+        residuals=r,
     )
