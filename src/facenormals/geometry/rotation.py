@@ -60,15 +60,16 @@ def _rotation(angles: Tensor) -> Tensor:
     """:func:`euler_to_rotation_matrix` without the input checks."""
     cr, cp, cy = torch.cos(angles).unbind(-1)
     sr, sp, sy = torch.sin(angles).unbind(-1)
-    # Product R_y(yaw) @ R_x(pitch) @ R_z(roll), written out.
-    r00 = cy * cr + sy * sp * sr
-    r01 = -cy * sr + sy * sp * cr
+    # Product R_y(yaw) @ R_x(pitch) @ R_z(roll), written out (sp·sr and sp·cr shared).
+    sp_sr, sp_cr = sp * sr, sp * cr
+    r00 = cy * cr + sy * sp_sr
+    r01 = sy * sp_cr - cy * sr
     r02 = sy * cp
     r10 = cp * sr
     r11 = cp * cr
     r12 = -sp
-    r20 = -sy * cr + cy * sp * sr
-    r21 = sy * sr + cy * sp * cr
+    r20 = cy * sp_sr - sy * cr
+    r21 = sy * sr + cy * sp_cr
     r22 = cy * cp
     return torch.stack([r00, r01, r02, r10, r11, r12, r20, r21, r22], dim=-1).reshape(-1, 3, 3)
 
@@ -135,6 +136,11 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
     check_shape(rotation, ["B", 3, 3], "rotation")
     check_floating(rotation, "rotation")
     check_finite(rotation, "rotation")
+    return _euler(rotation)
+
+
+def _euler(rotation: Tensor) -> Tensor:
+    """:func:`rotation_matrix_to_euler` without the input checks."""
     r10, r11, r12 = rotation[:, 1, 0], rotation[:, 1, 1], rotation[:, 1, 2]
     pitch = torch.atan2(-r12, torch.sqrt(r10 * r10 + r11 * r11))
     roll = torch.atan2(r10, r11)
