@@ -140,6 +140,82 @@ def test_robust_pose_ignores_spurious_landmarks(init):
         prealign_pose(uv, points, K, robust_scale=0.0)
 
 
+@pytest.mark.parametrize("robust_scale", [None, 3.0])
+def test_cost_and_rms_are_the_plain_reprojection_errors_at_the_pose(robust_scale):
+    """``cost`` and ``rms_px`` are ½Σ‖e_j‖² and the RMS of the plain landmark errors at the returned
+    pose, recomputed here with ``project_points``, for a batch with missing landmarks and outliers."""
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    views = [observe(model, yaw, noise=0.5, seed=i) for i, yaw in enumerate((-40.0, 15.0))]
+    uv, K = torch.cat([v[0] for v in views]), torch.cat([v[3] for v in views])
+    uv[0, [2, 9]] = float("nan")
+    uv[1, [0, 7]] += torch.tensor([25.0, -20.0], dtype=torch.float64)
+    est = prealign_pose(uv, points, K, robust_scale=robust_scale)
+    for v in range(2):
+        seen, _ = project_points(points[None], est.rotation[v:v + 1], est.translation[v:v + 1], K[v:v + 1])
+        keep = torch.isfinite(uv[v]).all(-1)
+        squared = (seen[0] - uv[v])[keep].square().sum(-1)
+        torch.testing.assert_close(est.cost[v], 0.5 * squared.sum(), rtol=1e-9, atol=0)
+        torch.testing.assert_close(est.rms_px[v], squared.mean().sqrt(), rtol=1e-9, atol=0)
+
+
+def test_only_the_robust_pre_alignment_stops_its_solves_early(monkeypatch):
+    """The plain pre-alignment solves to ftol 1e-7; the robust one stops its solves (the plain start
+    and the reweighted ones) at IRLS_FTOL, as its weights are settled only to IRLS_WEIGHT_TOLERANCE."""
+    import facenormals.fitting.pose as pose
+
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    uv, _, _, K = observe(model, 20.0, noise=0.5)
+    tolerances = []
+    original = pose.levenberg_marquardt
+    monkeypatch.setattr(pose, "levenberg_marquardt", lambda *a, **k: tolerances.append(k["ftol"]) or original(*a, **k))
+    prealign_pose(uv, points, K)
+    assert tolerances == [1e-7]
+    tolerances.clear()
+    prealign_pose(uv, points, K, robust_scale=3.0)
+    assert len(tolerances) >= 2 and set(tolerances) == {pose.IRLS_FTOL}
+
+
+def test_pnp_starts_of_a_batch_are_those_of_each_view(monkeypatch):
+    """OpenCV's starts for a batch of views (one with missing landmarks) are each view's own, and the
+    exact pose for exact points; a view OpenCV cannot solve gets zeros and False."""
+    import cv2
+
+    from facenormals.fitting.pose import _pnp_starts
+
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices]
+    views = [observe(model, yaw, seed=i) for i, yaw in enumerate((-50.0, 10.0, 70.0))]
+    angles = torch.cat([v[1] for v in views])
+    K = torch.cat([v[3] for v in views])
+    R = euler_to_rotation_matrix(angles)
+    t = torch.tensor([[3.0, -5.0, 650.0]], dtype=torch.float64)[:, None] @ R  # model frame, per view
+    uv, _ = project_points(points.expand(3, -1, -1), R, t[:, 0], K)
+    mask = torch.ones(3, uv.shape[1], dtype=torch.bool)
+    mask[1, :6] = False
+    uv[1, :6] = float("nan")
+    starts, found = _pnp_starts(points.expand(3, -1, -1), uv, mask, K)
+    assert found.tolist() == [True, True, True]
+    torch.testing.assert_close(starts[:, :3], angles, rtol=0, atol=1e-6)
+    torch.testing.assert_close(starts[:, 3:], t[:, 0], rtol=0, atol=1e-3)
+    for v in range(3):
+        alone, _ = _pnp_starts(points[None], uv[v:v + 1], mask[v:v + 1], K[v:v + 1])
+        torch.testing.assert_close(alone[0], starts[v], rtol=0, atol=0)
+    real, calls = cv2.solvePnP, []
+
+    def not_found_in_the_second_view(*args, **kwargs):
+        calls.append(1)
+        found, rvec, tvec = real(*args, **kwargs)
+        return (found and len(calls) != 2), rvec, tvec
+
+    monkeypatch.setattr(cv2, "solvePnP", not_found_in_the_second_view)
+    partial, found = _pnp_starts(points.expand(3, -1, -1), uv, mask, K)
+    assert found.tolist() == [True, False, True]
+    assert torch.equal(partial[1], torch.zeros(6, dtype=torch.float64))
+    torch.testing.assert_close(partial[[0, 2]], starts[[0, 2]], rtol=0, atol=0)
+
+
 #: The shipped network's detections on a synthetic ICT head at 22.9° of yaw (seed 1, index 0, the
 #: compose tutorial's sample), in crop pixels: both outer eye corners sit on the other eye's inner
 #: corner (19.5 and 23.0 px off); the other 15 are within 2.6 px of the truth.
