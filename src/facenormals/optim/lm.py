@@ -482,7 +482,7 @@ def _solve(
         step = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
         # L(0) - L(δ) = ½ δᵀ(λDδ - g) for the exact solution of the damped system.
         pred = 0.5 * (step * (lam_d * step + rhs)).sum(-1)
-        if bool(info.any()):  # inactive elements solve I δ = 0, which always factorises
+        if bool(info.any()):  # inactive elements have A = I, which always factorises
             idx = (active & (info != 0)).nonzero().squeeze(1)
             A_bad, rhs_bad, H_bad = A[idx], rhs[idx], H[idx]
             try:
