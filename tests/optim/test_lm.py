@@ -280,6 +280,45 @@ def test_bad_elements_do_not_spoil_the_batch():
     assert_close(0.5 * result.residuals[finite].square().sum(-1), result.cost[finite], rtol=1e-14, atol=0)
 
 
+def reference_lm(residual, jacobian, x0: np.ndarray, iterations: int, damping: float) -> np.ndarray:
+    """The documented iteration, one problem, a plain loop: Marquardt damping scaled by the running
+    maximum of diag(JᵀJ) over the accepted points (floored at eps times its largest entry), Nielsen's
+    damping update, the Jacobian only after an accepted step."""
+    x, lam, nu = x0.copy(), damping, 2.0
+    r, J = residual(x), jacobian(x)
+    H, g, d = J.T @ J, J.T @ r, np.diag(J.T @ J).copy()
+    for _ in range(iterations):
+        D = np.maximum(d, np.finfo(float).eps * d.max())
+        step = np.linalg.solve(H + lam * np.diag(D), -g)
+        pred = 0.5 * step @ (lam * D * step - g)
+        r_trial = residual(x + step)
+        rho = (0.5 * r @ r - 0.5 * r_trial @ r_trial) / pred
+        if rho > 0:
+            x, r = x + step, r_trial
+            lam, nu = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-15), 2.0
+            J = jacobian(x)
+            H, g = J.T @ J, J.T @ r
+            d = np.maximum(d, np.diag(H))
+        else:
+            lam, nu = max(lam, 1e-15) * nu, 2.0 * nu
+    return x
+
+
+def test_iterations_follow_the_documented_update_rules():
+    """Every iteration against a plain loop of the documented rules, on Rosenbrock starts where
+    diag(JᵀJ) grows along the path (so a stale damping scale would show) and where steps get
+    rejected, stopped after each iteration count with the convergence tests off."""
+    starts = np.array([[-0.2, 1.5], [0.1, -0.5], [-1.2, 1.0]])
+    residual = lambda z: rosenbrock(torch.as_tensor(z, dtype=F64)[None])[0].numpy()  # noqa: E731
+    jacobian = lambda z: rosenbrock_jacobian(torch.as_tensor(z, dtype=F64)[None])[0].numpy()  # noqa: E731
+    for k in range(1, 13):
+        result = levenberg_marquardt(rosenbrock, torch.as_tensor(starts), jacobian_fn=rosenbrock_jacobian,
+                                     damping=1e-2, max_iterations=k, ftol=0, xtol=0, gtol=0)
+        for b, start in enumerate(starts):
+            expected = reference_lm(residual, jacobian, start, k, damping=1e-2)
+            np.testing.assert_allclose(result.x[b].numpy(), expected, rtol=1e-9, atol=1e-12, err_msg=f"{k} {b}")
+
+
 def test_residuals_are_those_at_x_after_rejected_steps():
     """``LMResult.residuals`` are the residuals at the returned ``x``, not at a rejected last trial:
     Rosenbrock from (-1.2, 1) with Gauss-Newton first steps, stopped after every iteration count."""

@@ -331,7 +331,7 @@ def _robust_solve(x: Tensor, status: Tensor, points: Tensor, targets: Tensor, ma
         if bool((sqrt_w > 0).all()):  # the plain errors from the solve's weighted residuals at its x
             plain = weighted.residuals.view(i.shape[0], -1, 2) / sqrt_w
             error = error.index_copy(0, i, plain.norm(dim=-1))
-        else:  # a weight underflowed to 0 (an error beyond ~1e154 px): evaluate them
+        else:  # a weight underflowed to 0 (an error beyond ~1e154 robust scales): evaluate them
             error = None
     if error is None:
         error = _pose_residuals(x, P, b, m, K).norm(dim=-1)

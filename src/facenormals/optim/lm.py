@@ -495,7 +495,7 @@ def _solve(
             pred_bad = (step_bad * rhs_bad).sum(-1) - 0.5 * quad
             step = step.index_copy(0, idx, step_bad)
             pred = pred.index_copy(0, idx, pred_bad)
-        step = torch.where(act, step, 0.0)
+        step = torch.where(act, step, 0.0)  # an inactive element's -g may be NaN: it never reaches x_trial
 
         # A non-finite step is rejected below; the residuals are evaluated at x instead, so that
         # residual functions that check their inputs (the library's ops do) never see NaN.
