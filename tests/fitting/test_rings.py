@@ -25,6 +25,16 @@ def test_blocks_times_basis_equal_the_normal_jacobian():
     torch.testing.assert_close(dn, reference.reshape(-1, 3, model.num_shape)[flat], rtol=1e-10, atol=1e-12)
 
 
+def test_ring_normals_ignore_a_degenerate_face_as_vertex_normals_does():
+    """A face ``[a, b, b]`` adds nothing to its corners' ring normals, as in vertex_normals."""
+    g = torch.Generator().manual_seed(1)
+    verts = torch.randn(1, 5, 3, generator=g) * 50
+    faces = torch.tensor([[0, 1, 2], [1, 3, 4], [1, 4, 4]])
+    rings = Rings.build(faces, torch.arange(5), 5)
+    reference = vertex_normals(verts, faces)[0]
+    torch.testing.assert_close(rings.normals(verts.reshape(-1, 3)), reference, rtol=1e-5, atol=1e-6)
+
+
 def test_shared_face_geometry_gives_the_same_normals_and_derivatives():
     """A fit computes the ring faces once per point for its residuals and its Jacobian."""
     model = builtin_head_model(dtype=torch.float64)

@@ -29,6 +29,26 @@ def test_matches_autograd_jvp(shared):
         assert_close(dn[..., k], ref, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_degenerate_face_adds_no_normal(dtype):
+    """A face ``[a, b, b]`` has no normal in vertex_normals (its cross product is exactly 0); the jvp
+    path agrees (torch.linalg.cross left ~1e-5 there in float32, which the normalisation turned into
+    a unit normal in an arbitrary direction). Derivatives are compared away from the degenerate face:
+    at its corners they are those of the eps clamp (about 1/eps), defined by neither formula."""
+    g = torch.Generator().manual_seed(1)
+    vertices = torch.randn(1, 4, 3, generator=g, dtype=dtype) * 50
+    tangents = torch.randn(2, 4, 3, generator=g, dtype=dtype)
+    faces = torch.tensor([[0, 1, 2], [1, 3, 3]])
+    n, dn = vertex_normals_jvp(vertices, faces, tangents)
+    reference = vertex_normals(vertices, faces)
+    assert torch.equal(reference[0, 3], torch.zeros(3, dtype=dtype))  # used by the degenerate face alone
+    tolerance = dict(rtol=1e-4, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
+    assert_close(n, reference, **tolerance)
+    for k in range(2):
+        _, ref = torch.func.jvp(lambda x: vertex_normals(x, faces), (vertices,), (tangents[k].expand_as(vertices),))
+        assert_close(dn[:, [0, 2], :, k], ref[:, [0, 2]], **tolerance)
+
+
 def test_module_on_a_model_matches_finite_differences():
     model = builtin_head_model(dtype=torch.float64)
     jac = VertexNormalsJacobian(model.faces, model.shape_basis[:3])

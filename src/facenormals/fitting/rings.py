@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from facenormals.mesh.normals import _cross
+
 __all__ = ["RingRows", "Rings"]
 
 
@@ -128,7 +130,7 @@ class Rings:
         flat vertices ``(B·N, 3)``: what :meth:`normals` and :meth:`normal_derivatives` start from, for
         a caller that needs both at the same vertices (a fit's residuals, then its Jacobian)."""
         p = vertices[self.faces]
-        c = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        c = _cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # exactly 0 for a degenerate face [a, b, b]
         norm = c.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return p, c / norm, norm
 

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from facenormals.core.check import check_faces, check_finite, check_floating, check_positive, check_shape, check_tensor
-from facenormals.mesh.normals import _check_vertices
+from facenormals.mesh.normals import _check_vertices, _cross
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -54,7 +54,7 @@ def _jvp_one(
     num_vertices = num_out
     v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
     e1, e2 = v1 - v0, v2 - v0  # (F, 3)
-    c = torch.linalg.cross(e1, e2)
+    c = _cross(e1, e2)  # exactly 0 for a degenerate face [a, b, b], as in vertex_normals
     c_norm = c.norm(dim=1, keepdim=True).clamp_min(eps)  # (F, 1)
     m = c / c_norm
     d_c = torch.empty_like(d_e1) if work is None else work  # a reused buffer avoids page faults
