@@ -118,3 +118,34 @@ def test_angles_stay_in_the_documented_half_open_range(dtype):
     assert float(wrapped.abs().max()) < 1e-5
     half_turn = torch.tensor([[[-1.0, 0.0, 0.0], [-0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]], dtype=dtype)  # roll π
     assert rotation_matrix_to_euler(half_turn)[0, 0].item() == pytest.approx(math.pi)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("pitch_sign", [1.0, -1.0])
+def test_gimbal_lock_gives_angles_that_rebuild_the_matrix(dtype, pitch_sign):
+    """At |pitch| = 90 deg only yaw -/+ roll is determined: roll is 0 and yaw carries it (both
+    atan2 used to see 0/0 there and return (0, ±90°, 0), 0.1 off the matrix); near the singularity
+    the angles still rebuild the matrix."""
+    roll, yaw = 0.3, 0.4
+    cr, sr, cy, sy = math.cos(roll), math.sin(roll), math.cos(yaw), math.sin(yaw)
+    Rz = torch.tensor([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]], dtype=dtype)
+    Rx = torch.tensor([[1, 0, 0], [0, 0, -pitch_sign], [0, pitch_sign, 0]], dtype=dtype)  # cos(pitch) exactly 0
+    Ry = torch.tensor([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]], dtype=dtype)
+    R = (Ry @ Rx @ Rz)[None]
+    angles = rotation_matrix_to_euler(R)
+    assert angles[0, 0] == 0 and abs(float(angles[0, 1]) - pitch_sign * math.pi / 2) < 1e-6
+    assert abs(float(angles[0, 2]) - (yaw - pitch_sign * roll)) < 1e-6
+    assert_close(euler_to_rotation_matrix(angles), R, rtol=0, atol=1e-6)
+    for offset in (1e-9, 1e-6, 1e-4, 1e-2):
+        near = euler_to_rotation_matrix(torch.tensor([[roll, pitch_sign * (math.pi / 2 - offset), yaw]], dtype=dtype))
+        assert_close(euler_to_rotation_matrix(rotation_matrix_to_euler(near)), near, rtol=0,
+                     atol=1e-4 if dtype == torch.float32 else 1e-9)
+
+
+def test_gradients_stay_finite_where_the_unused_branch_has_zero_arguments():
+    """yaw 90 deg, pitch and roll 0: R[0,0] = R[0,1] = 0, the arguments of the gimbal-lock branch's
+    atan2, which is not taken; its 0/0 must not reach the gradient through torch.where."""
+    angles = torch.tensor([[0.0, 0.0, math.pi / 2]], dtype=torch.float64, requires_grad=True)
+    rotation_matrix_to_euler(euler_to_rotation_matrix(angles)).sum().backward()
+    assert torch.isfinite(angles.grad).all()
+    assert_close(angles.grad, torch.ones_like(angles.grad), rtol=0, atol=1e-9)

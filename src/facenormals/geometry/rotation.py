@@ -113,7 +113,11 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
 
     Uses ``pitch = atan2(-R[1,2], hypot(R[1,0], R[1,1]))``, ``roll = atan2(R[1,0], R[1,1])`` and
     ``yaw = atan2(R[0,2], R[2,2])``. Exact for ``|pitch| < π/2``; roll and yaw lie in ``(-π, π]``.
-    At the singularity ``|pitch| = π/2`` only ``yaw ± roll`` is determined.
+    At the singularity ``|pitch| = π/2`` roll and yaw turn about the same axis and only
+    ``yaw ∓ roll`` is determined: within ``sqrt(eps)`` of it (``hypot(R[1,0], R[1,1])`` below the
+    square root of the dtype's resolution, where the formulas above would divide rounding noise)
+    roll is 0 and ``yaw = atan2(sign(-R[1,2]) R[0,1], R[0,0])``, so that the angles still give back
+    ``R`` (to about ``sqrt(eps)``).
 
     Args:
         rotation: rotation matrices.
@@ -142,8 +146,16 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
 def _euler(rotation: Tensor) -> Tensor:
     """:func:`rotation_matrix_to_euler` without the input checks."""
     r10, r11, r12 = rotation[:, 1, 0], rotation[:, 1, 1], rotation[:, 1, 2]
-    pitch = torch.atan2(-r12, torch.sqrt(r10 * r10 + r11 * r11))
-    roll = torch.atan2(r10, r11)
-    yaw = torch.atan2(rotation[:, 0, 2], rotation[:, 2, 2])
+    cos_pitch = torch.sqrt(r10 * r10 + r11 * r11)
+    pitch = torch.atan2(-r12, cos_pitch)
+    # Gimbal lock: roll 0, yaw from the top-left block. Each atan2 gets harmless arguments where its
+    # result is not used, so that no 0/0 reaches the gradients through torch.where.
+    lock = cos_pitch <= torch.finfo(rotation.dtype).eps ** 0.5
+    zero, one = torch.zeros_like(r10), torch.ones_like(r10)
+    roll = torch.atan2(torch.where(lock, zero, r10), torch.where(lock, one, r11))
+    free_yaw = torch.atan2(torch.where(lock, zero, rotation[:, 0, 2]), torch.where(lock, one, rotation[:, 2, 2]))
+    locked_yaw = torch.atan2(torch.where(lock, torch.sign(-r12) * rotation[:, 0, 1], zero),
+                             torch.where(lock, rotation[:, 0, 0], one))
+    yaw = torch.where(lock, locked_yaw, free_yaw)
     angles = torch.stack([roll, pitch, yaw], dim=-1)
     return torch.where(angles <= -math.pi, -angles, angles)  # atan2(-0.0, x < 0) = -π: keep (-π, π]
