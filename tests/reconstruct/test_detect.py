@@ -29,10 +29,10 @@ def test_bad_image_argument():
 
 
 @pytest.mark.parametrize("box,size,match", [
-    ((0.0, 0.0, float("nan")), 8, "box: expected finite"),
-    ((float("inf"), 0.0, 4.0), 8, "box: expected finite"),
-    ((0.0, 0.0, 0.0), 8, "box: expected finite"),
-    ((0.0, 0.0, 4.0), 0, "size: expected a positive integer, got 0"),
+    ((0.0, 0.0, float("nan")), 8, "box: expected a crop box .* three finite numbers"),
+    ((float("inf"), 0.0, 4.0), 8, "box: expected a crop box .* three finite numbers"),
+    ((0.0, 0.0, 0.0), 8, "box: expected a crop box .* three finite numbers"),
+    ((0.0, 0.0, 4.0), 0, r"size: expected an integer in \[1, 4096\], got 0"),
 ])
 def test_crop_square_bad_box_or_size(box, size, match):
     with pytest.raises(ValueError, match=match):
@@ -104,3 +104,31 @@ def test_slivers_have_no_face_and_do_not_crash():
     for shape in ((3, 5000), (5000, 3), (1, 2000), (30, 4000)):  # the downscale used to round a side to 0
         assert detect_faces(np.full(shape, 128, np.uint8)) == []
 
+
+@pytest.mark.parametrize("name,value", [("max_side", 0), ("max_side", -5), ("max_side", 23.5), ("min_face", 2.0),
+                                        ("min_face", float("nan")), ("min_face", 0.0), ("min_hits", 0),
+                                        ("min_hits", True)])
+def test_detector_options_are_checked(name, value):
+    """A bad option used to return "no face" (max_side=0, min_face=2) or a message not naming it."""
+    with pytest.raises(ValueError, match=name):
+        detect_faces(np.full((64, 64, 3), 128, np.uint8), **{name: value})
+
+
+def test_an_empty_image_has_no_face_in_colour_as_in_grey():
+    assert detect_faces(np.zeros((0, 0, 3), np.uint8)) == []
+    assert detect_faces(np.zeros((0, 0), np.uint8)) == []
+
+
+@pytest.mark.parametrize("image,box,size,name", [
+    (np.zeros((0, 0, 3), np.uint8), (0.0, 0.0, 4.0), 8, "image"),
+    (np.zeros((8, 8, 3), np.int64), (0.0, 0.0, 4.0), 8, "image"),
+    (np.zeros((8, 8, 3), bool), (0.0, 0.0, 4.0), 8, "image"),
+    (np.zeros((8, 8, 3), np.uint8), (0.0, 0.0, 4.0, 4.0), 8, "box"),  # a face box (x, y, w, h) by mistake
+    (np.zeros((8, 8, 3), np.uint8), (0.0, 0.0), 8, "box"),
+    (np.zeros((8, 8, 3), np.uint8), "abc", 8, "box"),
+    (np.zeros((8, 8, 3), np.uint8), (0.0, 0.0, 4.0), 100_000, "size"),
+])
+def test_crop_square_names_what_is_wrong(image, box, size, name):
+    """These reached OpenCV (cv2.error) or a bare unpacking error."""
+    with pytest.raises(ValueError, match=name):
+        crop_square(image, box, size)

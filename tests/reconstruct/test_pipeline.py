@@ -531,7 +531,7 @@ def test_predict_maps_checks_its_crops():
     # 0-255 values found no landmark and read as "no face in the crop"
     with pytest.raises(ValueError, match=r"crops: expected RGB values in \[0, 1\] .*got values in \[0, 200\]"):
         predict_maps(net, torch.cat([torch.zeros(1, 3, 8, 16), torch.full((1, 3, 8, 16), 200.0)], dim=2))
-    with pytest.raises(ValueError, match=r"crops: expected a side divisible by 4 .*got shape \(1, 3, 18, 18\)"):
+    with pytest.raises(ValueError, match=r"crops: expected a side that is a positive multiple of 4 .*got shape \(1, 3, 18, 18\)"):
         predict_maps(net, torch.rand(1, 3, 18, 18))
 
 
@@ -604,3 +604,37 @@ def test_params_json_names_what_reloads_the_model(tmp_path):
     vertices = reloaded(torch.tensor([params["shape_coeffs"]]))
     assert torch.allclose(vertices, rec.fit.vertices, atol=1e-3)
     assert outputs[str(mine)][1]["model_spec"] is None  # given as an object
+
+
+def test_boxes_and_crops_of_the_wrong_form_are_named(tmp_path):
+    """A 3-value face box, a 4-value or non-positive crop box, and crops without their channel axis
+    failed with bare unpacking errors (or, for a negative side, mapped landmarks silently)."""
+    import cv2
+
+    from facenormals.reconstruct import prepare_view
+
+    photo = tmp_path / "photo.png"
+    cv2.imwrite(str(photo), np.full((64, 64, 3), 128, np.uint8))
+    with pytest.raises(ValueError, match="face box: expected four numbers"):
+        prepare_view(photo, box=(10, 10, 20))
+    crop = np.zeros((8, 8, 3), np.uint8)
+    for box in ((0, 0, 8, 8), (0, 0, -8), (0.0, float("nan"), 8.0)):
+        with pytest.raises(ValueError, match="box: expected a crop box"):
+            PhotoView(crop, box=box)
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    with pytest.raises(ValueError, match="crops: expected shape"):
+        reconstruct_views(torch.rand(3, 16, 16), net, builtin_head_model())
+    with pytest.raises(ValueError, match="crops: expected a side that is a positive multiple of 4"):
+        predict_maps(net, torch.rand(1, 3, 0, 0))
+
+
+def test_built_in_mirroring_refuses_a_network_with_other_landmarks_before_running_it():
+    """A network with 30 landmark channels: the mirror permutation of the library's 24 failed after
+    the forward pass, naming a `permutation` the caller never passed."""
+    net = NormalLandmarkUNet(num_landmarks=30, base_channels=4, depth=2)
+    calls = []
+    net.register_forward_hook(lambda *args: calls.append(1))
+    with pytest.raises(ValueError, match="mirror: .* 24 landmark channels, and this network predicts 30"):
+        predict_maps(net, torch.rand(1, 3, 16, 16))
+    assert calls == []
+    assert predict_maps(net, torch.rand(1, 3, 16, 16), mirror=False).landmarks.shape == (1, 30, 2)

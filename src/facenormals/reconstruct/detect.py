@@ -20,6 +20,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from facenormals.core.check import check_integer, check_positive
+
 __all__ = ["FaceBox", "NoFaceError", "crop_square", "detect_faces", "head_crop_box"]
 
 
@@ -94,6 +96,13 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
             or (image.ndim == 3 and image.shape[2] not in (1, 3, 4))):
         raise ValueError(f"image: expected a uint8 array (H, W[, 1|3|4]), got "
                          f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}")
+    max_side = check_integer(max_side, "max_side", minimum=24)  # the cascade's window is 24 px
+    min_face = check_positive(min_face, "min_face")
+    if min_face > 1:
+        raise ValueError(f"min_face: expected a fraction of the shorter image side in (0, 1], got {min_face!r}")
+    min_hits = check_integer(min_hits, "min_hits", minimum=1)
+    if image.size == 0:
+        return []  # no pixels, no face (as for a sliver below)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
@@ -127,6 +136,24 @@ def head_crop_box(face: FaceBox, scale: float = 1.9, shift: float = -0.12) -> tu
     return cx - side / 2, cy - side / 2, side
 
 
+#: The largest crop :func:`crop_square` makes (the network takes 128 px): a bigger one is a mistake,
+#: not a request for gigabytes.
+MAX_CROP_SIZE = 4096
+
+
+def check_crop_box(box: object, name: str = "box") -> tuple[float, float, float]:
+    """``box`` as ``(x0, y0, side)`` floats: three finite numbers with ``side > 0``, else a
+    ``ValueError`` naming ``name`` (e.g. for an ``(x, y, w, h)`` face box passed by mistake)."""
+    try:
+        values = tuple(float(v) for v in box)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values) or not values[2] > 0:
+        raise ValueError(f"{name}: expected a crop box (x0, y0, side) of three finite numbers with side > 0, "
+                         f"got {box!r}")
+    return values  # type: ignore[return-value]
+
+
 def crop_square(image: np.ndarray, box: tuple[float, float, float], size: int = 128) -> np.ndarray:
     """Resample the square ``box = (x0, y0, side)`` of ``image`` to ``size × size`` (edges replicated).
 
@@ -140,13 +167,13 @@ def crop_square(image: np.ndarray, box: tuple[float, float, float], size: int = 
     """
     import cv2
 
-    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"image: expected an array (H, W, 3), got shape {getattr(image, 'shape', None)}")
-    x0, y0, side = (float(v) for v in box)
-    if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(side) and side > 0):
-        raise ValueError(f"box: expected finite (x0, y0, side) with side > 0, got {tuple(box)}")
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-        raise ValueError(f"size: expected a positive integer, got {size!r}")
+    if (not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[2] != 3 or image.size == 0
+            or image.dtype not in (np.uint8, np.uint16, np.float32, np.float64)):
+        raise ValueError(f"image: expected a non-empty uint8, uint16, float32 or float64 array (H, W, 3), got "
+                         f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}")
+    x0, y0, side = check_crop_box(box)
+    if isinstance(size, bool) or not isinstance(size, int) or not 1 <= size <= MAX_CROP_SIZE:
+        raise ValueError(f"size: expected an integer in [1, {MAX_CROP_SIZE}], got {size!r}")
     s = side / size
     # crop pixel u -> image x = s*u + (x0 + 0.5*s - 0.5); warpAffine maps destination to source.
     matrix = np.array([[s, 0.0, x0 + 0.5 * s - 0.5], [0.0, s, y0 + 0.5 * s - 0.5]])

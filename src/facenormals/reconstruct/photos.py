@@ -44,7 +44,10 @@ def prepare_view(path: str | Path, box: tuple[float, float, float, float] | None
         face, others = faces[0], faces[1 : 1 + max_alternatives]
     else:
         others = []
-        x, y, w, h = (float(v) for v in box)
+        try:
+            x, y, w, h = (float(v) for v in box)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: face box: expected four numbers (x, y, width, height), got {box!r}") from None
         H, W = image.shape[:2]
         if not all(math.isfinite(v) for v in (x, y, w, h)) or not (w > 0 and h > 0):
             raise ValueError(f"{path}: face box: expected finite numbers and a positive width and height, got {box}")

@@ -34,7 +34,7 @@ from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.geometry import euler_to_rotation_matrix, project_points
 from facenormals.mesh import vertex_normals
 from facenormals.models import LANDMARK_NAMES, MorphableModel
-from facenormals.reconstruct.detect import NoFaceError
+from facenormals.reconstruct.detect import NoFaceError, check_crop_box
 from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
@@ -112,6 +112,7 @@ class PhotoView:
         side = int(shape[0])
         if self.box is None:  # the crop is the whole photo (a 256-pixel crop used to read as 128)
             self.box = (0.0, 0.0, float(side))
+        self.box = check_crop_box(self.box)
         if self.image_size is None:
             self.image_size = (side, side)
 
@@ -169,9 +170,13 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
             raise ValueError(f"crops: expected RGB values in [0, 1] (an 8-bit image / 255), got values in "
                              f"[{low:g}, {high:g}]")
     factor = 2 ** getattr(net, "depth", 0)
-    if crops.shape[-1] % factor:
-        raise ValueError(f"crops: expected a side divisible by {factor} (the network's 2**depth), got shape "
-                         f"{tuple(crops.shape)}")
+    if crops.shape[-1] % factor or crops.shape[-1] < factor:
+        raise ValueError(f"crops: expected a side that is a positive multiple of {factor} (the network's "
+                         f"2**depth), got shape {tuple(crops.shape)}")
+    if mirror and getattr(net, "num_landmarks", len(LANDMARK_NAMES)) != len(LANDMARK_NAMES):
+        raise ValueError(f"mirror: the built-in mirroring swaps the library's {len(LANDMARK_NAMES)} landmark "
+                         f"channels, and this network predicts {net.num_landmarks}: pass mirror=False, or "
+                         "mirror it yourself with facenormals.nn.mirror_averaged and its permutation")
     if threshold is None:
         threshold = landmark_threshold(net)
     start = time.perf_counter()
@@ -310,7 +315,8 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
                          "in crop pixels: give focal= (the fit refines it per view)")
     log = log or (lambda message: None)
     fit_options.setdefault("weights", network_fit_weights(net))
-    V, _, S, _ = crops.shape
+    dims = check_shape(crops, ["V", 3, "S", "S"], "crops")
+    V, S = dims["V"], dims["S"]
     if maps is None:
         maps = predict_maps(net, crops, mirror=mirror)
     else:
