@@ -121,8 +121,8 @@ def test_device(device):
         ((2, 4, 16, 16), r"images: expected shape \(B, 3, H, W\)"),  # wrong channels
         ((3, 16, 16), r"images: expected shape .*3 dimensions"),  # wrong rank
         ((1, 2, 3, 16, 16), r"images: expected shape .*5 dimensions"),
-        ((2, 3, 18, 16), r"images: expected H and W divisible by 2\*\*depth=4"),
-        ((2, 3, 16, 10), r"images: expected H and W divisible by 2\*\*depth=4"),
+        ((2, 3, 18, 16), r"images: expected H and W positive multiples of 2\*\*depth=4"),
+        ((2, 3, 16, 10), r"images: expected H and W positive multiples of 2\*\*depth=4"),
     ],
 )
 def test_bad_images(shape, match):
@@ -379,3 +379,26 @@ def test_loss_with_a_global_foreground_count_averages_to_the_global_batch_loss()
         with pytest.raises(ValueError, match="foreground_pixels: expected a finite number >= 0"):
             normal_landmark_loss(out, normals_gt, torch.zeros(4, 2, 6, 6, dtype=torch.float64), foreground,
                                  foreground_pixels=bad)
+
+
+def test_images_smaller_than_the_network_and_an_infinite_eps_are_refused():
+    """A side of 0 is divisible by 2**depth and used to fail deep inside the convolutions; an infinite
+    eps made every normal 0."""
+    net = tiny_net()
+    with pytest.raises(ValueError, match="images: expected H and W positive multiples"):
+        net(torch.rand(1, 3, 0, 8))
+    with pytest.raises(ValueError, match="eps"):
+        tiny_net(eps=float("inf"))
+
+
+def test_a_fractional_foreground_share_averages_to_the_global_loss():
+    """Data-parallel processes pass the global foreground count divided by their number, which can be
+    below 1: their losses must still average to the global batch's (a clamp at 1 halved it)."""
+    images, normals, landmarks = random_batch(2, 5, 8, 8, background_rows=8)
+    normals[0, 2, 0, 0] = -1.0  # one foreground pixel in the whole global batch
+    out = UNetOutput(torch.nn.functional.normalize(torch.randn(2, 3, 8, 8, dtype=torch.float64), dim=1),
+                     torch.zeros(2, 5, 8, 8, dtype=torch.float64), torch.zeros(2, 1, 8, 8, dtype=torch.float64))
+    _, whole = normal_landmark_loss(out, normals, landmarks)
+    halves = [normal_landmark_loss(UNetOutput(*(t[i:i + 1] for t in (out.normals, out.landmarks, out.foreground_logits))),
+                                   normals[i:i + 1], landmarks[i:i + 1], foreground_pixels=0.5)[1] for i in range(2)]
+    assert_close((halves[0]["normals"] + halves[1]["normals"]) / 2, whole["normals"], rtol=1e-12, atol=0)

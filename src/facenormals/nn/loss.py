@@ -122,7 +122,8 @@ def normal_landmark_loss(
         if count.numel() != 1 or not bool(torch.isfinite(count)) or float(count) < 0:
             raise ValueError(f"foreground_pixels: expected a finite number >= 0, got {foreground_pixels!r}")
         count = count.reshape(())
-    loss_normals = (sq_err * mask_f).sum() / count.clamp(min=1.0)
+    # only 0 is replaced (no foreground: the sum is 0 too); a data-parallel share may be below 1
+    loss_normals = (sq_err * mask_f).sum() / torch.where(count > 0, count, torch.ones_like(count))
     if landmarks_gt.numel() > 0:
         sq = (output.landmarks - landmarks_gt) ** 2
         if landmark_peak_weight > 0:

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_floating, check_positive, check_shape
 
 __all__ = ["NormalLandmarkUNet", "UNetOutput"]
 
@@ -180,8 +180,7 @@ class NormalLandmarkUNet(nn.Module):
             raise ValueError(
                 f"max_channels: expected an integer >= base_channels={base_channels}, got {max_channels!r}"
             )
-        if not eps > 0:
-            raise ValueError(f"eps: expected a positive value, got {eps}")
+        check_positive(eps, "eps")  # finite too: an infinite eps made every normal 0
         self.in_channels = in_channels
         self.num_landmarks = num_landmarks
         self.depth = depth
@@ -203,9 +202,9 @@ class NormalLandmarkUNet(nn.Module):
         dims = check_shape(images, ["B", self.in_channels, "H", "W"], "images")
         check_floating(images, "images")
         factor = 2**self.depth
-        if dims["H"] % factor or dims["W"] % factor:
+        if dims["H"] % factor or dims["W"] % factor or min(dims["H"], dims["W"]) < factor:
             raise ValueError(
-                f"images: expected H and W divisible by 2**depth={factor}, "
+                f"images: expected H and W positive multiples of 2**depth={factor}, "
                 f"got shape {tuple(images.shape)}"
             )
         weight = self.head.weight
