@@ -45,3 +45,13 @@ def test_round_trip_and_unknown_fields():
     assert TrainConfig.from_dict(c.to_dict()) == c
     with pytest.raises(ValueError, match="unknown"):
         TrainConfig.from_dict({**c.to_dict(), "bogus": 1})
+
+
+@pytest.mark.parametrize("field,value", [("ema_decay", "0.5"), ("min_lr_ratio", "0.1"), ("min_lr_ratio", True),
+                                         ("max_minutes", "5"), ("max_minutes", True), ("device", 3),
+                                         ("device", "tpu")])
+def test_values_of_the_wrong_type_name_the_field(field, value):
+    """These raised TypeError or AttributeError (device=3 only once training started), or were taken
+    as numbers (True)."""
+    with pytest.raises(ValueError, match=field):
+        TrainConfig(data="d", out="o", **{field: value})

@@ -181,3 +181,13 @@ def test_normal_angles_are_exact_near_zero():
                           torch.full((2, 16, 16), -math.cos(0.01))], 1)
     assert_close = torch.testing.assert_close
     assert_close(normal_angles(tilted, r, mask), torch.full((512,), math.degrees(0.01)), rtol=1e-4, atol=1e-5)
+
+
+def test_normal_angles_need_one_dtype_and_device():
+    """A float64 map against a float32 one failed inside torch.linalg.cross."""
+    n = torch.zeros(1, 3, 1, 2)
+    n[:, 2] = -1.0
+    mask = torch.ones(1, 1, 1, 2, dtype=torch.bool)
+    with pytest.raises(ValueError, match="target"):
+        normal_angles(n.double(), n, mask)
+    assert normal_angles(n, n, mask).tolist() == [0.0, 0.0]  # exactly: a × a is 0

@@ -105,16 +105,21 @@ class TrainConfig:
                         and (value > 0 if positive else value >= 0)):
                     raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'} value, "
                                      f"got {value!r}")
-        if not 0.0 <= self.ema_decay < 1.0:
+        def real(value: object) -> bool:
+            return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+        if not (real(self.ema_decay) and 0.0 <= self.ema_decay < 1.0):
             raise ValueError(f"ema_decay: expected a value in [0, 1), got {self.ema_decay!r}")
-        if not 0.0 <= self.min_lr_ratio <= 1.0:
+        if not (real(self.min_lr_ratio) and 0.0 <= self.min_lr_ratio <= 1.0):
             raise ValueError(f"min_lr_ratio: expected a value in [0, 1], got {self.min_lr_ratio!r}")
+        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu") or self.device.startswith("cuda")):
+            raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
         if self.precision not in ("auto", "bf16", "fp32"):
             raise ValueError(f"precision: expected 'auto', 'bf16' or 'fp32', got {self.precision!r}")
         if self.threads is not None and (not isinstance(self.threads, int) or isinstance(self.threads, bool)
                                          or self.threads < 1):
             raise ValueError(f"threads: expected a positive integer or None, got {self.threads!r}")
-        if self.max_minutes is not None and not self.max_minutes > 0:
+        if self.max_minutes is not None and not (real(self.max_minutes) and self.max_minutes > 0):
             raise ValueError(f"max_minutes: expected a positive value or None, got {self.max_minutes!r}")
 
     def _normalise_types(self) -> None:

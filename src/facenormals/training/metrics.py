@@ -8,9 +8,10 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Subset
 
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL, drop_hidden_landmarks
+from facenormals.mesh.normals import _cross
 from facenormals.models import MorphableModel
 from facenormals.nn.mirror import mirror_averaged
 from facenormals.nn.pretrained import check_threshold, landmark_threshold
@@ -81,6 +82,10 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     for name, x in (("predicted", predicted), ("target", target)):
         check_floating(x, name)
         check_finite(x, name)
+    check_same_dtype_device(predicted, "predicted", target=target)
+    if mask.device != predicted.device:
+        raise ValueError(f"mask: expected device {predicted.device} (that of predicted), got {mask.device}")
+    for name, x in (("predicted", predicted), ("target", target)):
         short = int((x.norm(dim=1, keepdim=True)[mask] <= 0.5).sum())
         if short:  # a zero normal (background) would score 0 degrees against anything
             raise ValueError(f"{name}: {short} pixels of mask hold no normal (norm <= 0.5, e.g. background zeros); "
@@ -88,7 +93,7 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
                              "those pixels out of mask")
     a, b = torch.nn.functional.normalize(predicted, dim=1), torch.nn.functional.normalize(target, dim=1)
     # atan2(|a × b|, a · b): exact near 0 and 180 degrees, where acos of a float32 cosine reads up to 0.02 degrees
-    angle = torch.atan2(torch.linalg.cross(a, b, dim=1).norm(dim=1), (a * b).sum(1))
+    angle = torch.atan2(_cross(a, b, dim=1).norm(dim=1), (a * b).sum(1))
     return torch.rad2deg(angle)[mask[:, 0]]
 
 
