@@ -153,3 +153,11 @@ def test_a_failed_setup_releases_the_context(monkeypatch):
     with pytest.raises(ValueError, match="exceeds the renderer's limit"):
         TileRenderer((32, 32))
     assert context.deleted
+
+
+@pytest.mark.parametrize("near,far,name", [(1000.0, 10.0, "far"), (0.0, 100.0, "near"), (-5.0, 100.0, "near"),
+                                           (float("nan"), 100.0, "near"), (5.0, float("inf"), "far")])
+def test_clipping_planes_are_checked_before_any_context(near, far, name):
+    """Reversed or non-positive planes drew the far side of the head, or nothing, without an error."""
+    with pytest.raises(ValueError, match=name):
+        TileRenderer((32, 32), grid=1, near=near, far=far)

@@ -527,3 +527,10 @@ def test_the_same_photo_folder_spelled_differently_resumes(tmp_path, monkeypatch
     with pytest.raises(ValueError, match="holds a dataset with another config .*fill"):
         _write(tmp_path / "out", count=2, shard_size=1, config=SynthConfig.head_only(
             background_folders=("photos",), use_skimage=False, fill=(0.5, 0.6)))
+
+
+@pytest.mark.parametrize("sigma", [float("inf"), float("nan"), 0.0, True, "1.5"])
+def test_a_bad_sigma_is_refused_by_the_constructor(tmp_path, sigma):
+    """An infinite sigma was accepted and failed on every item, inside DataLoader workers."""
+    with pytest.raises(ValueError, match="sigma"):
+        SyntheticHeadDataset(tmp_path, sigma=sigma)

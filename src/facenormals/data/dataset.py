@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from facenormals.core.check import check_positive
 from facenormals.data.landmark_maps import DEFAULT_SIGMA, landmark_maps
 from facenormals.data.shards import (SHARD_ARRAYS, read_manifest, read_member, shard_is_complete, shard_name,
                                      shard_range)
@@ -65,11 +66,9 @@ class SyntheticHeadDataset(Dataset):
         allow_missing: bool = False,
         with_landmark_maps: bool = True,
     ) -> None:
+        self.sigma = check_positive(sigma, "sigma")  # finite: an infinite one failed on every item instead
         self.root = Path(root)
         self.manifest = read_manifest(self.root)
-        if not sigma > 0:
-            raise ValueError(f"sigma: expected a positive value, got {sigma}")
-        self.sigma = float(sigma)
         self.augment = augment
         self.with_landmark_maps = bool(with_landmark_maps)
         self.count = int(self.manifest["count"])

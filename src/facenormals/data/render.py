@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from facenormals.core.check import check_positive
+
 __all__ = ["Lighting", "MeshPart", "RenderedTiles", "TileRenderer", "TileScene"]
 
 NEAR_MM = 5.0
@@ -211,7 +213,8 @@ class TileRenderer:
 
     Raises:
         HeadlessGLError: if no headless OpenGL platform can be used.
-        ValueError: on a bad size, grid or supersampling factor.
+        ValueError: on a bad size, grid, supersampling factor or clipping planes (``0 < near < far``,
+            finite).
     """
 
     def __init__(
@@ -234,7 +237,10 @@ class TileRenderer:
         self.image_size = (height, width)
         self.grid = int(grid)
         self.supersample = int(supersample)
-        self.near, self.far = float(near), float(far)
+        self.near = check_positive(near, "near")  # the projection assumes 0 < near < far, both finite
+        self.far = check_positive(far, "far")
+        if not self.far > self.near:
+            raise ValueError(f"far: expected a clipping distance beyond near = {self.near:g} mm, got {self.far:g}")
         self._context = create_gl_context()
         try:
             self._setup()
