@@ -366,3 +366,24 @@ def test_annotations_load_and_matrices_check_their_arguments(tmp_path):
         np.savez(tmp_path / "bad.npz", **{**arrays, **change})
         with pytest.raises(ModelFileError, match=f"bad.npz: {match}"):
             MorphableModel.load(tmp_path / "bad.npz")
+
+
+def test_with_annotations_refuses_left_and_right_in_the_image_sense():
+    """Names swapped left/right (the image's, not the subject's) fitted a head turned away from the
+    camera at 144 deg of yaw, "converged" with sub-pixel landmark errors; now the pairs are named."""
+    from facenormals.models import LANDMARK_NAMES, builtin_head_model
+
+    head = builtin_head_model()
+    bare = MorphableModel(head.mean, head.shape_basis, head.faces, shape_std=head.shape_std)
+    swap = {"right_": "left_", "left_": "right_"}
+    swapped = {}
+    for name, index in head.landmarks.items():
+        prefix = next((p for p in swap if name.startswith(p)), None)
+        swapped[swap[prefix] + name[len(prefix):] if prefix else name] = index
+    with pytest.raises(ValueError, match="right_eye_outer/left_eye_outer.* are mirrored"):
+        bare.with_annotations({name: swapped[name] for name in LANDMARK_NAMES})
+    one = dict(head.landmarks)
+    one["right_mouth_corner"], one["left_mouth_corner"] = one["left_mouth_corner"], one["right_mouth_corner"]
+    with pytest.raises(ValueError, match=r"landmarks: right_mouth_corner/left_mouth_corner are mirrored"):
+        bare.with_annotations(one)
+    assert bare.with_annotations(head.landmarks).landmarks == head.landmarks

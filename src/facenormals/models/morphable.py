@@ -356,6 +356,11 @@ class MorphableModel(nn.Module):
                 normals face forward (−z), or this model's region without a ``nose_tip``.
             radius: the default region's radius in mm.
 
+        Raises:
+            ValueError: on an index outside the mesh, or on mirrored pairs: a ``right_*`` landmark
+                that does not lie at −x of its ``left_*`` twin (the subject's right; image-sense
+                names would fit a head turned away from the camera).
+
         Example:
             >>> from facenormals.models import builtin_head_model
             >>> head = builtin_head_model()
@@ -365,7 +370,7 @@ class MorphableModel(nn.Module):
             (24, True)
         """
         from facenormals.mesh import vertex_normals
-        from facenormals.models.landmarks import LANDMARK_NAMES
+        from facenormals.models.landmarks import LANDMARK_NAMES, LANDMARK_PAIRS
 
         landmarks = dict(landmarks)
         unknown = [name for name in landmarks if name not in LANDMARK_NAMES]
@@ -386,11 +391,22 @@ class MorphableModel(nn.Module):
             near = (mean - mean[nose]).norm(dim=-1) < radius
             facing = vertex_normals(mean[None], self.faces)[0, :, 2] < 0
             face_region = near & facing
-        return MorphableModel(self.mean, self.shape_basis, self.faces, shape_std=self.shape_std,
-                              expression_basis=self.expression_basis, landmarks=landmarks,
-                              expression_names=self.expression_names or None, name=self.name,
-                              metadata=self.metadata,
-                              face_region=self.face_region if face_region is None else face_region)
+        model = MorphableModel(self.mean, self.shape_basis, self.faces, shape_std=self.shape_std,
+                               expression_basis=self.expression_basis, landmarks=landmarks,
+                               expression_names=self.expression_names or None, name=self.name,
+                               metadata=self.metadata,
+                               face_region=self.face_region if face_region is None else face_region)
+        # The subject's right is at -x (docs/conventions.md): mirrored names fit a head turned away
+        # from the camera, "converged" with sub-pixel landmark errors.
+        x, index = model.mean[:, 0], model.landmarks
+        mirrored = [f"{right}/{left}" for right, left in LANDMARK_PAIRS
+                    if right in index and left in index and not float(x[index[right]]) < float(x[index[left]])]
+        if mirrored:
+            raise ValueError(f"landmarks: {', '.join(mirrored)} are mirrored: the subject's right lies at -x of the "
+                             "left in the model frame (x towards the subject's left, docs/conventions.md), and "
+                             "these 'right' vertices are not; right and left are the subject's, not the image's "
+                             "(swap the names), or the model's geometry is mirrored")
+        return model
 
     def extra_repr(self) -> str:
         return (
