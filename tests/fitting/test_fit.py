@@ -101,6 +101,17 @@ def test_batch_of_subjects_matches_individual_fits(model):
         torch.testing.assert_close(batch.vertices[b], alone.vertices[0], atol=0.05, rtol=0)
 
 
+def test_one_subjects_views_against_a_batch_name_the_per_subject_shape(model):
+    """With B = 2 subjects, (V, 3) intrinsics were refused by a message saying (V, 3) is accepted."""
+    g = torch.Generator().manual_seed(5)
+    heads = [render_oracle_views(model, model.sample_shape_coeffs(1, generator=g), [0.0], image_size=32)
+             for _ in range(2)]
+    maps, lms = torch.cat([h.normal_maps for h in heads]), torch.cat([h.landmarks for h in heads])
+    with pytest.raises(ValueError, match=r"intrinsics: expected shape \(B, V, 3\) with B=2, V=1 \(one entry per "
+                                         r"subject of normal_maps\), got \(1, 3\)"):
+        fit_head(maps, lms, model, intrinsics=heads[0].intrinsics[0])
+
+
 def test_bad_input(model, head):
     obs = render_oracle_views(model, head, [0.0], image_size=32)
     maps = obs.normal_maps.clone()

@@ -119,6 +119,9 @@ def _as_views(x: Tensor, name: str, tail: list, views: dict[str, int] | None = N
         check_shape(x, ["B", "V", *tail], name, dict(views) if views else None)
     except ValueError:
         rest = ", ".join(str(t) for t in tail)
+        if views and views["B"] > 1:  # (V, ...) is one subject's: here each subject needs its own rows
+            raise ValueError(f"{name}: expected shape (B, V, {rest}) with B={views['B']}, V={views['V']} (one entry "
+                             f"per subject of normal_maps), got {got}") from None
         sizes = f" with B={views['B']}, V={views['V']}" if views else ""
         raise ValueError(f"{name}: expected shape (V, {rest}) or (B, V, {rest}){sizes}, got {got}") from None
     return x
