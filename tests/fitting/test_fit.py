@@ -112,6 +112,16 @@ def test_one_subjects_views_against_a_batch_name_the_per_subject_shape(model):
         fit_head(maps, lms, model, intrinsics=heads[0].intrinsics[0])
 
 
+def test_inputs_on_another_device_than_the_model_are_named(model, head):
+    """The fit runs on the model's device; maps elsewhere failed deep inside (seen with meta tensors,
+    which stand in for a GPU here)."""
+    obs = render_oracle_views(model, head, [0.0], image_size=32)
+    with pytest.raises(ValueError, match="normal_maps: expected device cpu .*got meta"):
+        fit_head(obs.normal_maps.to("meta"), obs.landmarks, model)
+    with pytest.raises(ValueError, match="intrinsics: expected device cpu .*got meta"):
+        fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics.to("meta"))
+
+
 def test_bad_input(model, head):
     obs = render_oracle_views(model, head, [0.0], image_size=32)
     maps = obs.normal_maps.clone()

@@ -311,7 +311,8 @@ def fit_head(
         A :class:`FitResult`.
 
     Raises:
-        ValueError: on bad shapes or types, NaN normal maps or initial pose, normal maps that are not
+        ValueError: on bad shapes or types, inputs on another device than the model, NaN normal maps
+            or initial pose, normal maps that are not
             unit camera-frame normals (scaled, colour-encoded or in an OpenGL frame), ``fit_expression``
             with a model without expressions, a view with fewer than 4 visible landmarks (with
             ``initial_pose``: a view with neither a face in its map nor a landmark); the message names
@@ -359,10 +360,14 @@ def fit_head(
         raise ValueError(f"{error}; landmarks follow model.landmark_names (model {model.name!r} names "
                          f"{model.landmark_indices.shape[0]}); the network's channels map onto them with "
                          "facenormals.reconstruct.landmark_channels(model)") from None
+    dtype, device = model.mean.dtype, model.mean.device
+    for name, x in (("normal_maps", normal_maps), ("landmarks", landmarks), ("intrinsics", intrinsics),
+                    ("landmark_mask", landmark_mask)):
+        if isinstance(x, Tensor) and x.device != device:  # the fit runs where the model is
+            raise ValueError(f"{name}: expected device {device} (the model's: move one to the other), got {x.device}")
     check_floating(normal_maps, "normal_maps")  # an integer map would truncate the unit normals to 0
     check_floating(landmarks, "landmarks")
     check_finite(normal_maps, "normal_maps")
-    dtype, device = model.mean.dtype, model.mean.device
     normal_maps, landmarks = normal_maps.to(dtype), landmarks.to(dtype)
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
