@@ -638,3 +638,38 @@ def test_built_in_mirroring_refuses_a_network_with_other_landmarks_before_runnin
         predict_maps(net, torch.rand(1, 3, 16, 16))
     assert calls == []
     assert predict_maps(net, torch.rand(1, 3, 16, 16), mirror=False).landmarks.shape == (1, 30, 2)
+
+
+def test_a_photo_inside_the_output_folder_under_an_output_name_is_refused(tmp_path):
+    """A photo saved as OUT/view0_overlay.png was overwritten by the overlay (and OUT/view1_overlay.png
+    deleted as an earlier run's extra view), exit 0."""
+    import cv2
+
+    from facenormals.reconstruct import reconstruct_photos
+    from facenormals.reconstruct.pipeline import reconstruction_would_replace
+
+    for name in ("view0_overlay.png", "view1_overlay.png", "head.obj", "params.json"):
+        photo = tmp_path / name
+        cv2.imwrite(str(photo), np.full((64, 64, 3), 128, np.uint8)) if name.endswith(".png") else photo.write_text("x")
+        before = photo.read_bytes()
+        with pytest.raises(ValueError, match="this photo is in the output folder under a name the reconstruction"):
+            reconstruct_photos([photo], tmp_path, model="builtin")
+        assert photo.read_bytes() == before
+    assert not reconstruction_would_replace(tmp_path / "photo.png", tmp_path)
+    assert not reconstruction_would_replace(tmp_path / "view0_overlay.png", tmp_path / "elsewhere")
+
+
+def test_stale_views_are_removed_but_never_an_input(oracle, tmp_path):
+    """write_reconstruction removes an earlier run's extra views, except a file that is one of this
+    reconstruction's photos."""
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
+    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                                  mirror=False)
+    photo = tmp_path / "view1_overlay.png"
+    photo.write_bytes(b"this run's photo")
+    (tmp_path / "view1_normals.png").write_bytes(b"an earlier run with two photos")
+    view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300),
+                     path=str(photo))
+    write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
+    assert not (tmp_path / "view1_normals.png").exists() and photo.read_bytes() == b"this run's photo"

@@ -16,7 +16,7 @@ from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
 from facenormals.reconstruct.pipeline import (NetworkMaps, PhotoView, Reconstruction, landmark_channels, predict_maps,
-                                              reconstruct_views, write_reconstruction)
+                                              reconstruct_views, reconstruction_would_replace, write_reconstruction)
 
 if TYPE_CHECKING:
     from facenormals.fitting import FitWeights
@@ -138,6 +138,10 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
                          "device; use --device cpu")
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ValueError(f"{out_dir}: the output folder exists as a file")
+    for path in paths if out_dir is not None else ():
+        if isinstance(path, (str, os.PathLike)) and reconstruction_would_replace(path, out_dir):
+            raise ValueError(f"{path}: this photo is in the output folder under a name the reconstruction writes or "
+                             "removes; move it, or choose another output folder")
     boxes = list(boxes) if boxes is not None else [None] * len(paths)
     if len(boxes) != len(paths):
         raise ValueError(f"boxes: expected one per image ({len(paths)}), got {len(boxes)}")

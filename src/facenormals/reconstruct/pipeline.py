@@ -429,6 +429,19 @@ def _wrap_degrees(radians: float) -> float:
     return degrees - 360.0 if degrees > 180.0 else degrees
 
 
+#: The files :func:`write_reconstruction` writes besides the per-view pictures (``_VIEW_PICTURE``).
+RECONSTRUCTION_FILES = ("head.ply", "head.obj", "params.json")
+_VIEW_PICTURE = re.compile(r"view(\d+)_(overlay|normals|landmarks)\.png")
+
+
+def reconstruction_would_replace(path: str | Path, out_dir: str | Path) -> bool:
+    """Whether writing a reconstruction into ``out_dir`` may replace or remove the file ``path``: one
+    of :data:`RECONSTRUCTION_FILES` or a view picture (earlier runs' extra views are removed)."""
+    path = Path(path).resolve()
+    return path.parent == Path(out_dir).resolve() and (
+        path.name in RECONSTRUCTION_FILES or _VIEW_PICTURE.fullmatch(path.name) is not None)
+
+
 def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]:
     """Write ``head.ply``, ``head.obj``, ``params.json`` and per view an overlay, N and Z pictures.
 
@@ -445,9 +458,10 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
     finally:
         staged.discard()
     # an earlier run with more photos left views this one does not have: they would not match params.json
+    inputs = {Path(view.path).resolve() for view in rec.views if view.path is not None}
     for stale in out.glob("view*_*.png"):
-        match = re.fullmatch(r"view(\d+)_(overlay|normals|landmarks)\.png", stale.name)
-        if match and int(match.group(1)) >= len(rec.views):
+        match = _VIEW_PICTURE.fullmatch(stale.name)
+        if match and int(match.group(1)) >= len(rec.views) and stale.resolve() not in inputs:
             stale.unlink(missing_ok=True)
     return written
 
