@@ -101,6 +101,37 @@ def test_evaluate_command(tmp_path, capsys):
            "'chin'" in capsys.readouterr().err
 
 
+def test_evaluate_json_keeps_the_model_file_and_makes_new_folders(tmp_path, capsys):
+    """--json equal to --model wrote the report over the model file; --json in folders that did not
+    exist yet failed after all the work and lost the report."""
+    model = builtin_head_model()
+    ref, pred, saved = tmp_path / "ref.ply", tmp_path / "pred.ply", tmp_path / "model.npz"
+    model.export_mesh(ref)
+    model.export_mesh(pred, model.shape_std * 0.5)
+    model.save(saved)
+    before = saved.read_bytes()
+    assert main(["evaluate", str(pred), str(ref), "--model", str(saved), "--json", str(saved)]) == 1
+    assert f"--json: {saved} is also an input of this command" in capsys.readouterr().err
+    assert saved.read_bytes() == before
+    report = tmp_path / "new" / "sub" / "r.json"
+    assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--json", str(report)]) == 0
+    assert json.loads(report.read_text())
+
+
+def test_train_refuses_absurd_workers_and_exporting_over_its_init_weights(tmp_path, capsys):
+    """--workers 99999 started processes until the machine ran out of memory; --export equal to --init
+    overwrote the weights the run started from."""
+    assert main(["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "run"), "--steps", "1",
+                 "--workers", "99999", "--quiet"]) == 1
+    assert "workers: expected at most 256" in capsys.readouterr().err
+    weights = tmp_path / "w.pt"
+    weights.write_bytes(b"weights")
+    assert main(["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "run"), "--steps", "1",
+                 "--init", str(weights), "--export", str(weights), "--quiet"]) == 1
+    assert f"--export: {weights} holds the --init weights" in capsys.readouterr().err
+    assert weights.read_bytes() == b"weights" and not (tmp_path / "run").exists()
+
+
 def test_library_errors_and_ctrl_c_are_one_line_and_an_exit_status(monkeypatch, capsys):
     import facenormals.cli as cli
 

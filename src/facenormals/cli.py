@@ -98,7 +98,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from facenormals.models import load_model
 
     if args.json is not None:
-        _check_writable(args.json, "--json", inputs=(args.prediction, args.reference, args.prediction_landmarks))
+        _check_writable(args.json, "--json", inputs=(args.prediction, args.reference, args.prediction_landmarks,
+                                                     args.model))  # a model file too, not the names ict/builtin
     pred_v, pred_f = load_mesh(args.prediction)
     ref_v, ref_f = load_mesh(args.reference)
     model = load_model(args.model)
@@ -144,6 +145,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json is not None:
         from facenormals.core import atomic_write
 
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)  # the check above removed the folders it made
         with atomic_write(args.json) as part:
             part.write_text(json.dumps(_json_safe(report.as_dict()), indent=2, allow_nan=False))
         print(f"wrote {args.json}")
@@ -202,7 +204,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         values.update({key: stored[key] for key in RESUMED_SETTINGS if key not in values and key in stored})
     config = TrainConfig(**values)
     if args.export is not None:
-        _check_export_path(args.export, Path(config.out))
+        _check_export_path(args.export, Path(config.out), config.init)
     summary = train(config, progress=not args.quiet)
     if environment_integer("RANK", 0) != 0:  # under torchrun only rank 0 reports and exports
         return 130 if summary.stopped_by == "signal" else 0
@@ -261,12 +263,15 @@ def _check_writable(path: str | Path, option: str, folder: bool = False, inputs:
                 break
 
 
-def _check_export_path(export: str, out: Path) -> None:
+def _check_export_path(export: str, out: Path, init: str | None = None) -> None:
     """Refuse, before training, an --export path that cannot be written or would destroy a file."""
     from facenormals.nn import load_weights
 
     _check_writable(export, "--export")
     path = Path(export)
+    if init is not None and path.resolve() == Path(init).resolve():
+        raise ValueError(f"--export: {path} holds the --init weights this run starts from; writing over them would "
+                         "lose them, choose another file")
     if path.resolve() == (out / "last.pt").resolve():
         raise ValueError(f"--export: {path} is the run's checkpoint; writing the weights over it would lose the "
                          "training state, choose another file")

@@ -12,6 +12,11 @@ from pathlib import Path
 __all__ = ["TrainConfig"]
 
 
+#: The most DataLoader workers a config takes (each is a process): 99,999 exhausted the memory of the
+#: machine running it; 256 is far above the 1-14 the recipe has been run with.
+MAX_WORKERS = 256
+
+
 @dataclass
 class TrainConfig:
     r"""Everything that defines a training run (stored in every checkpoint).
@@ -39,7 +44,7 @@ class TrainConfig:
             learned nothing but empty maps in the first 2,000 steps of our CPU run).
         foreground_weight: weight of the foreground cross-entropy (our addition).
         sigma: landmark Gaussian standard deviation in pixels.
-        workers: DataLoader worker processes per training process.
+        workers: DataLoader worker processes per training process (at most ``MAX_WORKERS``, 256).
         device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
         precision: ``"bf16"`` (autocast), ``"fp32"`` or ``"auto"`` (bf16 where the hardware has
             native bf16: CUDA compute capability ≥ 8, or a CPU with AVX512-BF16/AMX).
@@ -95,6 +100,8 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                 raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
+        if self.workers > MAX_WORKERS:  # each is a process with its own copy of the dataset's state
+            raise ValueError(f"workers: expected at most {MAX_WORKERS} DataLoader worker processes, got {self.workers}")
         if self.seed >= 1 << 63:  # torch's generators take seeds below 2**64; the derived ones stay below 2**63
             raise ValueError(f"seed: expected an integer below 2**63, got {self.seed}")
         for names, positive in ((("lr", "sigma"), True),
