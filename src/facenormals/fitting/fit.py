@@ -312,11 +312,10 @@ def fit_head(
 
     Raises:
         ValueError: on bad shapes or types, inputs on another device than the model, NaN normal maps
-            or initial pose, normal maps that are not
-            unit camera-frame normals (scaled, colour-encoded or in an OpenGL frame), ``fit_expression``
-            with a model without expressions, a view with fewer than 4 visible landmarks (with
-            ``initial_pose``: a view with neither a face in its map nor a landmark); the message names
-            the view.
+            or initial pose, normal maps that are not unit camera-frame normals (scaled,
+            colour-encoded or in an OpenGL frame), ``fit_expression`` with a model without expressions,
+            a view with fewer than 4 visible landmarks (with ``initial_pose``: a view with neither a
+            face in its map nor a landmark); the message names the view.
     """
     import time
 
