@@ -111,6 +111,14 @@ def test_bad_checkpoint_and_weight_files_name_the_file(tmp_path):
         load_weights(bad)
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         load_weights(tmp_path / "missing.pt")
+    folder = tmp_path / "afolder.pt"  # a folder is not "missing": say what it is
+    folder.mkdir()
+    with pytest.raises(FileNotFoundError, match="afolder.pt: a folder, not a checkpoint"):
+        load_checkpoint(folder)
+    with pytest.raises(FileNotFoundError, match="afolder.pt: a folder, not a weight file"):
+        load_weights(folder)
+    with pytest.raises(FileNotFoundError, match="init: .*afolder.pt: a folder, not a weight file"):
+        train(_config(tmp_path, init=str(folder)), TinyHeads(8), progress=False)
 
 
 def test_epoch_sampler_is_a_deterministic_rank_partition_that_resumes():

@@ -49,7 +49,7 @@ def describe_load_error(error: BaseException) -> str:
 
 def _read_payload(path: Path) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such weight file")
+        raise FileNotFoundError(f"{path}: {'a folder, not a weight file' if path.is_dir() else 'no such weight file'}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file

@@ -35,7 +35,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such checkpoint")
+        raise FileNotFoundError(f"{path}: {'a folder, not a checkpoint' if path.is_dir() else 'no such checkpoint'}")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)  # plain data: no code runs on load
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file

@@ -278,7 +278,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         holdout = _open_dataset(config.holdout, config, with_maps=False)
     _check_depth_fits_the_images(dataset, config.depth)
     if config.init is not None and not last.exists() and not Path(config.init).is_file():
-        raise FileNotFoundError(f"init: {config.init}: no such weight file")
+        what = "a folder, not a weight file" if Path(config.init).is_dir() else "no such weight file"
+        raise FileNotFoundError(f"init: {config.init}: {what}")
 
     torch.manual_seed(config.seed)
     net = NormalLandmarkUNet(base_channels=config.base_channels, depth=config.depth).to(ctx.device)
