@@ -132,6 +132,17 @@ def test_train_refuses_absurd_workers_and_exporting_over_its_init_weights(tmp_pa
     assert weights.read_bytes() == b"weights" and not (tmp_path / "run").exists()
 
 
+def test_train_errors_name_the_options(tmp_path, capsys):
+    """TrainConfig names its fields (batch_size); the command names its options (--batch-size)."""
+    for option, value, message in (("--batch-size", "0", "expected a positive integer"),
+                                   ("--min-lr-ratio", "2", "expected a value in [0, 1]"),
+                                   ("--device", "tpu", "expected 'auto', 'cpu'")):
+        assert main(["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "run"), option, value,
+                     "--quiet"]) == 1
+        err = capsys.readouterr().err
+        assert f"{option}: {message}" in err, err
+
+
 def test_library_errors_and_ctrl_c_are_one_line_and_an_exit_status(monkeypatch, capsys):
     import facenormals.cli as cli
 

@@ -202,7 +202,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
         stored = load_checkpoint(last)["config"]
         values.update({key: stored[key] for key in RESUMED_SETTINGS if key not in values and key in stored})
-    config = TrainConfig(**values)
+    try:
+        config = TrainConfig(**values)
+    except ValueError as error:  # the config names its fields; name the command's options where they came from
+        name, _, rest = str(error).partition(": ")
+        if name in fields and getattr(args, name, None) is not None:
+            raise ValueError(f"--{name.replace('_', '-')}: {rest}") from None
+        raise
     if args.export is not None:
         _check_export_path(args.export, Path(config.out), config.init)
     summary = train(config, progress=not args.quiet)
