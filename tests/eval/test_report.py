@@ -252,6 +252,21 @@ def test_wrong_correspondences_are_warned_about(head):
     assert bad.as_dict()["rigid"]["alignment_rms"] == bad.rigid.alignment_rms
 
 
+def test_depth_statistics_over_little_of_the_face_are_warned_about(head):
+    """A prediction with most of its face missing scored depth statistics over a few points without
+    a word (and NaN ones, with coverage 0, for a mesh of triangles without area)."""
+    model, shape = head
+    good = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    assert all(r.depth.coverage > 0.9 for r in (good.rigid, good.similarity)) and good.warnings == []
+    centroids = shape[model.faces].mean(1)
+    holed = model.faces[centroids[:, 0] > 25.0]  # a strip of the left cheek and ear only
+    report = evaluate_reconstruction(shape, holed, model.mean, model.faces, model.face_region,
+                                     (model.landmarks, model.landmarks))
+    assert report.similarity.depth.coverage < 0.5
+    assert any(w.startswith("similarity alignment: only ") and "depth statistics describe little" in w
+               for w in report.warnings), report.warnings
+
+
 def test_shares_vertex_order_ignores_triangle_order_start_winding_and_diagonals(head):
     from facenormals.eval import shares_vertex_order
 

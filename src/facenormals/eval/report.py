@@ -67,6 +67,9 @@ ALIGNMENTS = ("rigid", "similarity")
 #: six default landmarks of random ICT identities (y ~ N(0, 1)) stay 2.5 mm apart (median, 7 at
 #: most over 100), of y ~ 3·N(0, 1) 8 mm (21 at most); left and right eyes swapped leave 27 mm.
 ALIGNMENT_RMS_WARNING = 20.0
+#: Below this share of the reference's points finding the prediction's surface along the viewing
+#: direction, the depth statistics describe a fraction of the face (holes, a cropped or degenerate mesh).
+DEPTH_COVERAGE_WARNING = 0.5
 
 
 @dataclass(frozen=True)
@@ -157,7 +160,8 @@ class EvaluationReport:
     def warnings(self) -> list[str]:
         """Signs that the numbers may be those of a wrong alignment rather than of the shape: the
         rough alignment's points left more than :data:`ALIGNMENT_RMS_WARNING` mm apart (wrong
-        correspondences: left and right swapped, another vertex order). (ICP's own convergence is
+        correspondences: left and right swapped, another vertex order), or depth statistics over
+        less than :data:`DEPTH_COVERAGE_WARNING` of the reference points. (ICP's own convergence is
         in the table but no warning: between two different heads its closest pairs often end in a
         2-cycle, which :func:`icp_point_to_plane` detects and counts as converged.)"""
         out = []
@@ -168,6 +172,11 @@ class EvaluationReport:
                            f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit; above "
                            f"{ALIGNMENT_RMS_WARNING:g} mm the correspondences are likely wrong (left and right "
                            "swapped, another vertex order): check them")
+            if not result.depth.coverage >= DEPTH_COVERAGE_WARNING:  # NaN too
+                out.append(f"{name} alignment: only {result.depth.count} of the {self.num_points} reference points "
+                           f"({100 * result.depth.coverage:.0f} %) meet the prediction's surface along the viewing "
+                           "direction, so the depth statistics describe little of the face (holes, a cropped "
+                           "prediction, or triangles without area)")
         return out
 
 
