@@ -17,6 +17,11 @@ __all__ = ["TrainConfig"]
 MAX_WORKERS = 256
 
 
+def _is_real(value: object) -> bool:
+    """A plain real number (``bool`` is not one, nor a string)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 @dataclass
 class TrainConfig:
     r"""Everything that defines a training run (stored in every checkpoint).
@@ -108,16 +113,12 @@ class TrainConfig:
                                 (("weight_decay", "landmark_weight", "landmark_peak_weight", "foreground_weight"), False)):
             for name in names:
                 value = getattr(self, name)
-                if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                        and (value > 0 if positive else value >= 0)):
+                if not (_is_real(value) and math.isfinite(value) and (value > 0 if positive else value >= 0)):
                     raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'} value, "
                                      f"got {value!r}")
-        def real(value: object) -> bool:
-            return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-        if not (real(self.ema_decay) and 0.0 <= self.ema_decay < 1.0):
+        if not (_is_real(self.ema_decay) and 0.0 <= self.ema_decay < 1.0):
             raise ValueError(f"ema_decay: expected a value in [0, 1), got {self.ema_decay!r}")
-        if not (real(self.min_lr_ratio) and 0.0 <= self.min_lr_ratio <= 1.0):
+        if not (_is_real(self.min_lr_ratio) and 0.0 <= self.min_lr_ratio <= 1.0):
             raise ValueError(f"min_lr_ratio: expected a value in [0, 1], got {self.min_lr_ratio!r}")
         if not isinstance(self.device, str) or not (self.device in ("auto", "cpu") or self.device.startswith("cuda")):
             raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
@@ -126,7 +127,7 @@ class TrainConfig:
         if self.threads is not None and (not isinstance(self.threads, int) or isinstance(self.threads, bool)
                                          or self.threads < 1):
             raise ValueError(f"threads: expected a positive integer or None, got {self.threads!r}")
-        if self.max_minutes is not None and not (real(self.max_minutes) and self.max_minutes > 0):
+        if self.max_minutes is not None and not (_is_real(self.max_minutes) and self.max_minutes > 0):
             raise ValueError(f"max_minutes: expected a positive value or None, got {self.max_minutes!r}")
 
     def _normalise_types(self) -> None:
