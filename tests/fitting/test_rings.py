@@ -1,5 +1,6 @@
 """The ring-normal derivative blocks equal the forward-mode derivatives of the whole mesh."""
 
+import pytest
 import torch
 
 from facenormals.fitting.rings import Rings, _compact
@@ -51,7 +52,8 @@ def test_shared_face_geometry_gives_the_same_normals_and_derivatives():
     assert torch.equal(rings.normals(flat, rings.face_geometry(other)), rings.normals(other))
 
 
-def test_row_structure_is_the_dense_block_matrix():
+@pytest.mark.parametrize("layout", [None, torch.sparse_bsr, torch.sparse_csr])
+def test_row_structure_is_the_dense_block_matrix(layout):
     model = builtin_head_model(dtype=torch.float64)
     N = model.num_vertices
     rings = Rings.build(model.faces, torch.tensor([5, 40, 41]), N)
@@ -63,7 +65,11 @@ def test_row_structure_is_the_dense_block_matrix():
         assert rings.block_slot[b] == entries[e]
         g = int(rings.block_vertex[b])
         dense[3 * e : 3 * e + 3, 3 * g : 3 * g + 3] += values[t]
-    torch.testing.assert_close(rows.matrix(values, 3 * N).to_dense(), dense)
+    matrix = rows.matrix(values, 3 * N, layout=layout)
+    assert matrix.layout == (layout or torch.sparse_bsr)  # the CPU's default
+    torch.testing.assert_close(matrix.to_dense(), dense)
+    basis = torch.randn(3 * N, 4, dtype=torch.float64)
+    torch.testing.assert_close(matrix @ basis, dense @ basis)
     assert dense[3:6].abs().sum() == 0
 
 

@@ -489,7 +489,7 @@ class HeadFitProblem:
         values = torch.bmm(left[rows.entry], raw[rows.block])
         values.index_add_(0, layout.diagonal, T[rows.entry[layout.diagonal]])
         # Into a fresh buffer: `csr @ dense` zero-fills and copies its result, ~1/3 of the product.
-        shared = x.new_empty(rows.crow.shape[0] - 1, C, dtype=dtype)
+        shared = x.new_empty(rows.num_rows, C, dtype=dtype)
         torch.addmm(shared, rows.matrix(values.to(dtype), 3 * self.N), self._basis(dtype), beta=0.0, out=shared)
 
         # Landmark and prior rows.

@@ -194,8 +194,8 @@ class Rings:
             >>> faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
             >>> rings = Rings.build(faces, torch.tensor([0, 3]), 4)
             >>> rows = rings.row_structure(torch.tensor([1, 2, 0]), 4)  # slot 1, none, slot 0
-            >>> rows.crow.tolist()[::3], rows.block.tolist()
-            ([0, 27, 27, 63], [4, 5, 6, 0, 1, 2, 3])
+            >>> rows.crow.tolist(), rows.block.tolist(), rows.col.tolist()
+            ([0, 3, 3, 7], [4, 5, 6, 0, 1, 2, 3], [0, 2, 3, 0, 1, 2, 3])
         """
         device = entry_slot.device
         U = self.num_slots
@@ -204,46 +204,71 @@ class Rings:
         counts = start[slot + 1] - start[slot]  # (E,)
         total = int(counts.sum())
         entry = torch.repeat_interleave(torch.arange(slot.shape[0], device=device), counts, output_size=total)
-        first = torch.cumsum(counts, 0) - counts  # first block of each entry
-        position = torch.arange(total, device=device) - first[entry]  # block position within its entry
-        block = start[slot][entry] + position
-        # CSR: row 3e + a holds, for each block of entry e in order, the columns 3g .. 3g + 2
-        crow = torch.zeros(3 * slot.shape[0] + 1, dtype=torch.long, device=device)
-        crow[1:] = torch.cumsum((3 * counts).repeat_interleave(3), 0)
-        a = torch.arange(3, device=device)
-        # value (pair t, row a, column j) sits at 9 first + 3 a counts + 3 position + j of the CSR values
-        row_offset = 3 * a[None, :, None] * counts[entry][:, None, None]
-        dest = (9 * first[entry] + 3 * position)[:, None, None] + row_offset + a[None, None, :]
-        perm = torch.empty(9 * total, dtype=torch.long, device=device)
-        perm[dest.reshape(-1)] = torch.arange(9 * total, device=device)
-        col = (3 * (self.block_vertex[block] % num_vertices))[:, None, None] + a[None, None, :]  # (T, 1, 3) per block column
-        col_values = torch.empty(9 * total, dtype=torch.long, device=device)
-        col_values[dest.reshape(-1)] = col.expand(-1, 3, -1).reshape(-1)
-        return RingRows(entry, block, crow, col_values, perm)
+        crow = torch.zeros(slot.shape[0] + 1, dtype=torch.long, device=device)
+        crow[1:] = torch.cumsum(counts, 0)
+        block = start[slot][entry] + torch.arange(total, device=device) - crow[entry]  # an entry's blocks in order
+        return RingRows(entry, block, crow, self.block_vertex[block] % num_vertices)
 
 
 @dataclass
 class RingRows:
-    """Sparse layout from :meth:`Rings.row_structure` for ``T`` (entry, block) pairs.
+    """Sparse layout from :meth:`Rings.row_structure`: ``E`` entries (block rows of 3 rows) and ``T``
+    (entry, block) pairs, each a 3×3 block.
 
     Attributes:
-        entry: ``(T,)`` the entry (3-row block) of each pair; block: ``(T,)`` its ring block.
-        crow, col: CSR row pointers ``(3E + 1,)`` and column indices ``(9T,)``.
-        perm: ``(9T,)`` CSR value ``i`` is ``values.reshape(-1)[perm[i]]`` of per-pair ``(T, 3, 3)`` values.
+        entry: ``(T,)`` the entry of each pair, ascending; block: ``(T,)`` its ring block.
+        crow: ``(E + 1,)`` the pairs of entry ``e`` are ``crow[e] : crow[e + 1]``.
+        col: ``(T,)`` the block column of each pair (its vertex modulo the column space's vertices).
     """
 
     entry: Tensor
     block: Tensor
     crow: Tensor
     col: Tensor
-    perm: Tensor
 
-    def matrix(self, values: Tensor, num_columns: int) -> Tensor:
-        """The CSR matrix ``(3E, num_columns)`` with per-pair blocks ``values`` ``(T, 3, 3)``."""
-        with warnings.catch_warnings():  # "sparse CSR support is in beta"
+    @property
+    def num_rows(self) -> int:
+        return 3 * (self.crow.shape[0] - 1)
+
+    def matrix(self, values: Tensor, num_columns: int, layout: torch.layout | None = None) -> Tensor:
+        """The sparse matrix ``(3E, num_columns)`` with per-pair blocks ``values`` ``(T, 3, 3)``.
+
+        ``layout`` defaults to BSR on the CPU, where MKL's block product with a dense matrix is faster
+        than the CSR one (~0.8 ms of a 15 ms fit iteration on the ICT head, ``docs/performance.md``)
+        and takes the blocks as they are, and to CSR on other devices (the layout measured on CUDA).
+        """
+        if layout is None:
+            layout = torch.sparse_bsr if values.device.type == "cpu" else torch.sparse_csr
+        with warnings.catch_warnings():  # "sparse CSR/BSR support is in beta"
             warnings.simplefilter("ignore", UserWarning)
-            return torch.sparse_csr_tensor(self.crow, self.col, values.reshape(-1)[self.perm],
-                                           (self.crow.shape[0] - 1, num_columns), check_invariants=False)
+            if layout == torch.sparse_bsr:
+                return torch.sparse_bsr_tensor(self.crow, self.col, values, (self.num_rows, num_columns),
+                                               check_invariants=False)
+            crow, col, perm = self._csr()
+            return torch.sparse_csr_tensor(crow, col, values.reshape(-1)[perm], (self.num_rows, num_columns),
+                                           check_invariants=False)
+
+    def _csr(self) -> tuple[Tensor, Tensor, Tensor]:
+        """CSR row pointers ``(3E + 1,)``, column indices ``(9T,)`` and the order ``(9T,)`` of the
+        flat per-pair values: row ``3e + a`` holds, for each pair of entry ``e`` in turn, the
+        columns ``3 col + j``."""
+        cache = self.__dict__.setdefault("_csr_cache", {})
+        if not cache:
+            device = self.crow.device
+            counts, first = self.crow.diff(), self.crow[:-1]
+            crow = torch.zeros(3 * counts.shape[0] + 1, dtype=torch.long, device=device)
+            crow[1:] = torch.cumsum((3 * counts).repeat_interleave(3), 0)
+            a = torch.arange(3, device=device)
+            position = torch.arange(self.entry.shape[0], device=device) - first[self.entry]
+            # value (pair t, row a, column j) sits at 9 first + 3 a counts + 3 position + j
+            dest = ((9 * first[self.entry] + 3 * position)[:, None, None] + 3 * a[None, :, None]
+                    * counts[self.entry][:, None, None] + a[None, None, :]).reshape(-1)
+            perm = torch.empty_like(dest)
+            perm[dest] = torch.arange(dest.shape[0], device=device)
+            col = torch.empty_like(dest)
+            col[dest] = (3 * self.col[:, None, None] + a[None, None, :]).expand(-1, 3, -1).reshape(-1)
+            cache["csr"] = (crow, col, perm)
+        return cache["csr"]
 
 
 def _summing(rows: Tensor, cols: Tensor, num_rows: int, num_cols: int, dtype: torch.dtype) -> Tensor:
