@@ -382,3 +382,27 @@ def test_synth_errors_name_the_command_options(tmp_path, capsys):
                      *extra]) == 1
         assert f"facenormals synth: error: {message}" in capsys.readouterr().err, extra
     assert not (tmp_path / "d").exists()
+
+
+def test_models_show_describes_a_model_without_shape_components(tmp_path, capsys):
+    """min() of the empty shape_std failed: `models show` of a K = 0 model (a rigid template) was an error."""
+    from facenormals.models import MorphableModel
+
+    head = builtin_head_model()
+    MorphableModel(head.mean, head.shape_basis[:0], head.faces, shape_std=head.shape_std[:0],
+                   landmarks=head.landmarks).save(tmp_path / "rigid.npz")
+    assert main(["models", "show", str(tmp_path / "rigid.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "shape         0 components\n" in out and "nose_tip" in out
+
+
+def test_models_show_of_a_model_file_with_a_single_landmark_name_is_a_clear_error(tmp_path, capsys):
+    """A 0-d landmark_names printed a TypeError traceback."""
+    import numpy as np
+
+    builtin_head_model().save(tmp_path / "good.npz")
+    arrays = dict(np.load(tmp_path / "good.npz"))
+    np.savez(tmp_path / "one.npz", **{**arrays, "landmark_names": np.array("nose_tip"),
+                                      "landmark_indices": np.array(5)})
+    assert main(["models", "show", str(tmp_path / "one.npz")]) == 1
+    assert "one.npz: array 'landmark_names' has shape (), expected a 1-D list" in capsys.readouterr().err

@@ -39,11 +39,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _describe(model) -> list[str]:
     std = model.shape_std
+    # a model without shape components (a rigid template) has no sigma range
+    sigma = f" (sigma {float(std.min()):.3g} .. {float(std.max()):.3g})" if std.numel() else ""
     lines = [
         f"name          {model.name}",
         f"vertices      {model.num_vertices}",
         f"triangles     {model.faces.shape[0]}",
-        f"shape         {model.num_shape} components (sigma {float(std.min()):.3g} .. {float(std.max()):.3g})",
+        f"shape         {model.num_shape} components{sigma}",
         f"expressions   {model.num_expressions}",
         f"landmarks     {len(model.landmark_names)}",
         f"face region   {int(model.face_region.sum())} vertices",

@@ -440,3 +440,34 @@ def test_a_download_cut_short_without_a_length_is_not_kept(ict_raw, tmp_path, mo
     assert list((tmp_path / "ict").iterdir()) == []  # a retry downloads again
     monkeypatch.setattr(urllib.request, "urlopen", lambda *a, **k: _FakeResponse(payload))
     assert load_ict_npz(fetch_ict(cache=tmp_path, progress=None)).num_shape == 2
+
+
+def _small_archive(ict_npz) -> dict:
+    """The archive's arrays with 2 identity modes and 1 expression (small copies)."""
+    with np.load(ict_npz) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["identity_basis"] = arrays["identity_basis"][:2]
+    arrays["expression_basis"] = arrays["expression_basis"][:1]
+    arrays["expression_names"] = arrays["expression_names"][:1]
+    return arrays
+
+
+def test_a_single_expression_name_names_the_archive(ict_npz, tmp_path):
+    """A 0-d expression_names (one name saved as a scalar) raised a bare TypeError from iterating it."""
+    arrays = _small_archive(ict_npz)
+    np.savez(tmp_path / "bad.npz", **{**arrays, "expression_names": arrays["expression_names"][0]})
+    with pytest.raises(ModelFileError, match=r"bad.npz: array 'expression_names' has shape \(\), expected a 1-D list"):
+        load_ict_npz(tmp_path / "bad.npz")
+
+
+def test_a_face_vertex_count_outside_the_mesh_names_the_archive(ict_npz, tmp_path):
+    """face_vertex_count -1 gave an empty face region, silently."""
+    arrays = _small_archive(ict_npz)
+    num_vertices = arrays["mean"].shape[0]
+    for count in (-1, 0, num_vertices + 1, np.inf):
+        np.savez(tmp_path / "bad.npz", **{**arrays, "face_vertex_count": np.array(count)})
+        with pytest.raises(ModelFileError, match=f"bad.npz: face_vertex_count is {count}, expected 1 to the "
+                                                 f"{num_vertices} vertices"):
+            load_ict_npz(tmp_path / "bad.npz")
+    np.savez(tmp_path / "all.npz", **{**arrays, "face_vertex_count": np.array(num_vertices)})
+    assert int(load_ict_npz(tmp_path / "all.npz").face_region.sum()) > 0

@@ -387,3 +387,100 @@ def test_with_annotations_refuses_left_and_right_in_the_image_sense():
     with pytest.raises(ValueError, match=r"landmarks: right_mouth_corner/left_mouth_corner are mirrored"):
         bare.with_annotations(one)
     assert bare.with_annotations(head.landmarks).landmarks == head.landmarks
+
+
+def test_single_name_list_fields_of_a_model_file_are_a_model_file_error(tmp_path):
+    """A 0-d landmark_names (one name saved as a scalar) raised a bare TypeError from iterating it."""
+    tiny_model().save(tmp_path / "good.npz")
+    arrays = dict(np.load(tmp_path / "good.npz"))
+    for change in ({"landmark_names": np.array("nose_tip"), "landmark_indices": np.array(1)},
+                   {"landmark_indices": np.array(1)},
+                   {"expression_names": np.array("a")},
+                   {"landmark_names": np.array([["nose_tip", "chin"]])}):
+        key = next(iter(change))
+        np.savez(tmp_path / "bad.npz", **{**arrays, **change})
+        with pytest.raises(ModelFileError, match=rf"bad.npz: array '{key}' has shape \(.*\), expected a 1-D list"):
+            MorphableModel.load(tmp_path / "bad.npz")
+
+
+def test_buffers_are_built_on_the_device_of_the_mean(monkeypatch):
+    """The default expression_basis, and a shape_std, faces or face_region given on the CPU, stayed on
+    the CPU with a mean on another device. Without a GPU the meta device stands in; it holds no values,
+    so only the value-reading checks are switched off (they run on the CPU arguments otherwise)."""
+    import facenormals.models.morphable as morphable
+
+    monkeypatch.setattr(morphable, "check_finite", lambda *args, **kwargs: None)
+    monkeypatch.setattr(morphable, "outward_share", lambda *args, **kwargs: 1.0)
+    full = tiny_model()
+    meta = torch.device("meta")
+    model = MorphableModel(full.mean.to(meta), full.shape_basis, full.faces, shape_std=full.shape_std,
+                           face_region=full.face_region, landmarks=full.landmarks)
+    assert {name: buffer.device for name, buffer in model.named_buffers()} == {
+        name: meta for name, _ in full.named_buffers()}
+    assert model.expression_basis.shape == (0, 5, 3) and model.faces.dtype == torch.long
+    assert model.basis_matrix(with_expression=True).device == meta
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cpu_arguments_follow_a_cuda_mean():
+    full = tiny_model()
+    cuda = torch.device("cuda")
+    model = MorphableModel(full.mean.to(cuda), full.shape_basis, full.faces, shape_std=full.shape_std,
+                           expression_basis=full.expression_basis, face_region=full.face_region)
+    assert all(buffer.device.type == "cuda" for _, buffer in model.named_buffers())
+    y = torch.randn(2, 3, dtype=torch.float64, device=cuda)
+    assert_close(model(y).cpu(), full(y.cpu()))
+    defaults = MorphableModel(full.mean.to(cuda), full.shape_basis.to(cuda), full.faces.to(cuda))
+    assert all(buffer.device.type == "cuda" for _, buffer in defaults.named_buffers())
+
+
+def test_forward_refuses_non_finite_coefficients():
+    """NaN or inf coefficients gave all-NaN vertices without an error."""
+    model = tiny_model()
+    y, e = torch.zeros(2, 3, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="shape_coeffs: expected finite values, got 1 NaN or infinite"):
+            model(y.index_fill(1, torch.tensor([1]), bad)[:1])
+        with pytest.raises(ValueError, match="shape_coeffs: expected finite values"):
+            model(y.index_fill(1, torch.tensor([1]), bad), e)
+        with pytest.raises(ValueError, match="expression_coeffs: expected finite values"):
+            model(y, e.index_fill(1, torch.tensor([0]), bad))
+
+
+def test_a_model_without_shape_components_evaluates_and_round_trips(tmp_path):
+    """K = 0 (a rigid template) is accepted by the constructor, save and load; forward and
+    basis_matrix reshaped with -1, which is ambiguous for an empty basis."""
+    full = tiny_model()
+    model = MorphableModel(full.mean, full.shape_basis[:0], full.faces, shape_std=full.shape_std[:0])
+    assert torch.equal(model(torch.zeros(2, 0, dtype=torch.float64)), full.mean.expand(2, 5, 3))
+    assert model.basis_matrix().shape == (15, 0) and model.sample_shape_coeffs(3).shape == (3, 0)
+    model.save(tmp_path / "k0.npz")
+    assert MorphableModel.load(tmp_path / "k0.npz").num_shape == 0
+
+
+def test_export_names_coefficients_that_are_no_tensor(tmp_path):
+    """A list raised AttributeError: 'list' object has no attribute 'shape'."""
+    with pytest.raises(ValueError, match="shape_coeffs: expected a torch.Tensor, got list"):
+        tiny_model().export_mesh(tmp_path / "head.ply", [0.0, 0.0, 0.0])
+
+
+def test_sampling_names_a_generator_that_is_no_generator():
+    """A string raised a TypeError from deep inside torch.randn."""
+    model = tiny_model()
+    with pytest.raises(ValueError, match="generator: expected a torch.Generator or None, got str"):
+        model.sample_shape_coeffs(2, generator="x")
+    generator = torch.Generator().manual_seed(3)
+    assert model.sample_shape_coeffs(2, generator=generator).shape == (2, 3)
+
+
+def test_an_edited_cached_result_is_rebuilt():
+    """basis_matrix() and mean_normals() return their cached tensor: a caller's J.zero_() made every
+    later call return zeros."""
+    model = tiny_model()
+    J, normals = model.basis_matrix(), model.mean_normals()
+    expected_J, expected_normals = J.clone(), normals.clone()
+    assert model.basis_matrix() is J  # no copy while untouched
+    J.zero_()
+    normals[0].zero_()  # through a view too
+    assert torch.equal(model.basis_matrix(), expected_J) and torch.equal(model.mean_normals(), expected_normals)
+    assert model.basis_matrix() is model.basis_matrix()

@@ -114,7 +114,8 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
 def _check_ict_arrays(arrays: dict, path: Path) -> None:
     """Raise ``ModelFileError`` naming ``path`` unless the archive's arrays have the kinds and ranks
     :func:`_ict_model` needs: numbers where numbers belong, whole numbers for indices (a fractional
-    landmark index would be truncated silently), at least one identity mode."""
+    landmark index would be truncated silently), a list of expression names, at least one identity
+    mode, a face area of 1 to all vertices."""
     for key, rank in (("mean", 2), ("identity_basis", 3), ("expression_basis", 3), ("faces", 2),
                       ("landmarks_ibug68", 1), ("face_vertex_count", 0)):
         if key not in arrays:
@@ -126,9 +127,16 @@ def _check_ict_arrays(arrays: dict, path: Path) -> None:
         if key in ("faces", "landmarks_ibug68", "face_vertex_count") and value.dtype.kind == "f":
             if not np.array_equal(value, np.round(value)):  # NaN included
                 raise ModelFileError(f"{path}: array {key!r} holds indices that are not whole numbers")
+    names = np.asarray(arrays["expression_names"])
+    if names.ndim != 1:  # a single name (0-d) is no list
+        raise ModelFileError(f"{path}: array 'expression_names' has shape {names.shape}, expected a 1-D list")
     if arrays["identity_basis"].shape[0] == 0:
         raise ModelFileError(f"{path}: the archive has no identity modes (identity_basis of shape "
                              f"{arrays['identity_basis'].shape})")
+    if "face_vertex_count" in arrays:  # the face area is the first vertices: none or too many is no face area
+        count, num_vertices = np.asarray(arrays["face_vertex_count"]).item(), np.asarray(arrays["mean"]).shape[0]
+        if not 1 <= count <= num_vertices:
+            raise ModelFileError(f"{path}: face_vertex_count is {count}, expected 1 to the {num_vertices} vertices")
 
 
 def _ict_model(arrays: dict, scale: float, dtype: torch.dtype, file: str) -> MorphableModel:

@@ -14,8 +14,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_faces, check_finite, check_floating,
-                                    check_integer, check_positive, check_shape, outside_millimetre_span, outward_share)
+from facenormals.core.check import (INWARD_SHARE, MILLIMETRE_SPAN, check_all_finite, check_faces, check_finite,
+                                    check_floating, check_integer, check_positive, check_shape, check_tensor,
+                                    outside_millimetre_span, outward_share)
 from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
@@ -41,12 +42,22 @@ def check_model_dtype(dtype: object) -> None:
         raise ValueError(f"dtype: expected a floating-point torch dtype, got {dtype!r}")
 
 
+def _version(tensor: Tensor) -> int | None:
+    """``tensor._version``, the count of its in-place edits; ``None`` for an inference tensor (made
+    under ``torch.inference_mode``), which keeps no count."""
+    return None if tensor.is_inference() else tensor._version
+
+
 class MorphableModel(nn.Module):
     r"""A linear shape model with optional expression blendshapes and named landmarks.
 
     Vertices are :math:`X = X_0 + \sum_k y_k W_k + \sum_j e_j E_j`. Lengths are in mm and the model
     frame is the one of ``docs/conventions.md`` (face along −z, y down). All arrays are registered as
     buffers, so ``.to(device, dtype)`` moves them.
+
+    Every buffer is built on ``mean``'s device and the floating ones in its dtype: arguments on another
+    device (e.g. ``faces`` or ``shape_std`` on the CPU with a CUDA ``mean``) are moved there after
+    their checks, and the defaults are created there.
 
     Args:
         mean: the mean shape :math:`X_0`.
@@ -109,6 +120,8 @@ class MorphableModel(nn.Module):
         num_vertices = dims["N"]
         if check_faces(faces, num_vertices)["F"] == 0:  # no surface: empty normal maps, a landmarks-only fit
             raise ValueError(f"faces: expected at least one triangle, got shape {tuple(faces.shape)}")
+        dtype, device = mean.dtype, mean.device
+        faces = faces.to(device=device, dtype=torch.long)  # checked: every buffer lives on mean's device
         check_finite(mean, "mean")
         check_finite(shape_basis, "shape_basis")
         outward = outward_share(mean, faces)
@@ -118,7 +131,6 @@ class MorphableModel(nn.Module):
                 f"{50 * (1 - outward):.0f} % of its area): they are wound clockwise seen from outside, facenormals "
                 "expects counter-clockwise (docs/conventions.md); reverse them (faces[:, [0, 2, 1]])"
             )
-        dtype, device = mean.dtype, mean.device
         if shape_std is None:
             shape_std = torch.ones(dims["K"], dtype=dtype, device=device)
         shape_std = torch.as_tensor(shape_std, dtype=dtype)
@@ -126,7 +138,7 @@ class MorphableModel(nn.Module):
         if shape_std.numel() and not bool((shape_std > 0).all() & torch.isfinite(shape_std).all()):
             raise ValueError("shape_std: expected positive finite standard deviations")
         if expression_basis is None:
-            expression_basis = torch.zeros(0, num_vertices, 3, dtype=dtype)
+            expression_basis = torch.zeros(0, num_vertices, 3, dtype=dtype, device=device)
         expression_basis = torch.as_tensor(expression_basis)
         check_shape(expression_basis, ["E", "N", 3], "expression_basis", dims)
         check_floating(expression_basis, "expression_basis")
@@ -157,15 +169,15 @@ class MorphableModel(nn.Module):
         self.metadata = metadata
         self.landmark_names = list(landmarks)
         self.expression_names = names
-        self.register_buffer("mean", mean.to(dtype).contiguous())
-        self.register_buffer("shape_basis", shape_basis.to(dtype).contiguous())
-        self.register_buffer("shape_std", shape_std.contiguous())
-        self.register_buffer("expression_basis", expression_basis.to(dtype).contiguous())
-        self.register_buffer("faces", faces.to(torch.long).contiguous())
+        self.register_buffer("mean", mean.contiguous())
+        self.register_buffer("shape_basis", shape_basis.to(device=device, dtype=dtype).contiguous())
+        self.register_buffer("shape_std", shape_std.to(device).contiguous())
+        self.register_buffer("expression_basis", expression_basis.to(device=device, dtype=dtype).contiguous())
+        self.register_buffer("faces", faces.contiguous())
         self.register_buffer(
             "landmark_indices", torch.tensor([int(i) for i in landmarks.values()], dtype=torch.long, device=device)
         )
-        self.register_buffer("face_region", face_region.contiguous())
+        self.register_buffer("face_region", face_region.to(device).contiguous())
 
     @property
     def num_vertices(self) -> int:
@@ -185,15 +197,24 @@ class MorphableModel(nn.Module):
         return dict(zip(self.landmark_names, self.landmark_indices.tolist()))
 
     def forward(self, shape_coeffs: Tensor, expression_coeffs: Tensor | None = None) -> Tensor:
-        """Vertices of the heads with the given coefficients; see the class docstring for shapes."""
+        """Vertices of the heads with the given coefficients; see the class docstring for shapes.
+
+        Raises:
+            ValueError: if a coefficient tensor has the wrong shape, dtype or device, or holds NaN or
+                infinite values.
+        """
         dims = check_shape(shape_coeffs, ["B", self.num_shape], "shape_coeffs")
         self._check_coeffs(shape_coeffs, "shape_coeffs")
         batch = dims["B"]
-        flat = self.mean.reshape(1, -1).expand(batch, -1)
-        vertices = torch.addmm(flat, shape_coeffs, self.shape_basis.reshape(self.num_shape, -1))
         if expression_coeffs is not None:
             check_shape(expression_coeffs, ["B", self.num_expressions], "expression_coeffs", dims)
             self._check_coeffs(expression_coeffs, "expression_coeffs")
+            check_all_finite(shape_coeffs=shape_coeffs, expression_coeffs=expression_coeffs)  # one sync
+        else:
+            check_finite(shape_coeffs, "shape_coeffs")
+        flat = self.mean.reshape(1, -1).expand(batch, -1)
+        # explicit sizes: a model without shape components (K = 0) has nothing to infer -1 from
+        vertices = torch.addmm(flat, shape_coeffs, self.shape_basis.reshape(self.num_shape, 3 * self.num_vertices))
         if expression_coeffs is not None and self.num_expressions:
             vertices = torch.addmm(
                 vertices, expression_coeffs, self.expression_basis.reshape(self.num_expressions, -1)
@@ -214,6 +235,10 @@ class MorphableModel(nn.Module):
         ``dtype`` (default: the model's, e.g. float32 for float32 normal equations of a float64
         model) and reused until a buffer changes (``.to()``, in-place edits).
 
+        The result is that cached tensor, shared by every call (no copy on this hot path): treat it as
+        read-only. An in-place edit of it (``J.zero_()``) is detected and the next call rebuilds it,
+        but other holders of the tensor see the edit; ``.clone()`` it to modify it.
+
         Shape:
             - output: :math:`(3N, K)`, or :math:`(3N, K + E)` with ``with_expression``
 
@@ -227,12 +252,16 @@ class MorphableModel(nn.Module):
         if dtype is not None:
             check_model_dtype(dtype)
         dtype = dtype or self.shape_basis.dtype
+        columns = sum(p.shape[0] for p in parts)  # explicit: (3N, -1) is ambiguous with no component at all
         return self._derived(("basis_matrix", with_expression, dtype), parts, lambda: torch.cat(
-            [p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, -1).to(dtype).contiguous())
+            [p.permute(1, 2, 0) for p in parts], dim=-1).reshape(3 * self.num_vertices, columns).to(dtype).contiguous())
 
     def mean_normals(self) -> Tensor:
         """``(N, 3)`` outward unit vertex normals of the mean shape (model frame); computed once and
         reused until a buffer changes.
+
+        The result is that cached tensor, shared by every call: treat it as read-only (an in-place
+        edit is detected and the next call rebuilds it, but other holders see the edit).
 
         Example:
             >>> from facenormals.models import builtin_head_model
@@ -247,7 +276,7 @@ class MorphableModel(nn.Module):
     def landmark_normals(self) -> Tensor:
         """``(L, 3)`` outward unit vertex normals of the mean shape at the landmarks (model frame), e.g.
         for :func:`~facenormals.fitting.prealign_pose`'s ``model_normals``; computed once and reused
-        until a buffer changes.
+        until a buffer changes; like :meth:`mean_normals`, a shared cached tensor to treat as read-only.
 
         Example:
             >>> from facenormals.models import builtin_head_model
@@ -260,13 +289,15 @@ class MorphableModel(nn.Module):
 
     def _derived(self, slot: object, sources: Sequence[Tensor], build: Callable[[], Tensor]) -> Tensor:
         """``build()``, kept under ``slot`` until one of its ``sources`` changes: is replaced (``.to()``,
-        assignment) or edited in place (its ``_version``). The entry holds the sources themselves, so
-        that a new tensor can never pass for a freed one that had its ``id``."""
+        assignment) or edited in place (its ``_version``), or the result itself is edited in place by a
+        caller (``J.zero_()``; its ``_version`` too). The entry holds the sources themselves, so that a
+        new tensor can never pass for a freed one that had its ``id``."""
         cache = self.__dict__.setdefault("_derived_cache", {})
         entry = cache.get(slot)
-        if entry is None or len(entry[0]) != len(sources) or any(
-                old is not p or version != p._version for (old, version), p in zip(entry[0], sources)):
-            entry = cache[slot] = (tuple((p, p._version) for p in sources), build())
+        if entry is None or entry[2] != _version(entry[1]) or len(entry[0]) != len(sources) or any(
+                old is not p or version != _version(p) for (old, version), p in zip(entry[0], sources)):
+            result = build()
+            entry = cache[slot] = (tuple((p, _version(p)) for p in sources), result, _version(result))
         return entry[1]
 
     def _apply(self, fn, *args, **kwargs):
@@ -297,6 +328,8 @@ class MorphableModel(nn.Module):
             raise ValueError(f"batch: expected a non-negative integer, got {batch!r}")
         if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale >= 0):
             raise ValueError(f"scale: expected a finite number >= 0, got {scale!r}")
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise ValueError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
         noise = torch.randn(batch, self.num_shape, generator=generator, dtype=self.shape_std.dtype)
         return noise.to(self.shape_std.device) * (scale * self.shape_std)
 
@@ -309,6 +342,7 @@ class MorphableModel(nn.Module):
         if shape_coeffs is None:
             vertices = self.mean
         else:
+            check_tensor(shape_coeffs, "shape_coeffs")
             if tuple(shape_coeffs.shape) not in ((self.num_shape,), (1, self.num_shape)):
                 raise ValueError(f"shape_coeffs: expected shape ({self.num_shape},) or (1, {self.num_shape}), "
                                  f"got {tuple(shape_coeffs.shape)}")
@@ -466,6 +500,9 @@ class MorphableModel(nn.Module):
             raise
         except (*NPZ_READ_ERRORS, KeyError) as error:
             raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
+        for key in ("landmark_names", "landmark_indices", "expression_names"):  # a 0-d array is no list
+            if key in arrays and arrays[key].ndim != 1:
+                raise ModelFileError(f"{path}: array {key!r} has shape {arrays[key].shape}, expected a 1-D list")
         names = [str(n) for n in arrays.get("landmark_names", np.array([], dtype=str))]
         indices = arrays.get("landmark_indices", np.zeros(0, dtype=np.int64)).tolist()
         if len(names) != len(indices) or len(set(names)) != len(names):
