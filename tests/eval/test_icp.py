@@ -103,6 +103,19 @@ def test_rejection_of_distant_pairs(surface):
         ({"init": (1.0, torch.eye(3))}, r"init: expected a tuple \(s, R, t\)"),
         ({"init": (1.0, torch.eye(2), torch.zeros(3))}, r"init: expected R of shape"),
         ({"init": (-1.0, torch.eye(3), torch.zeros(3))}, r"init: expected finite values and a positive scale"),
+        ({"init": ("2", torch.eye(3), torch.zeros(3))}, r"init: expected real numbers for the scale s, got str '2'"),
+        ({"init": (True, torch.eye(3), torch.zeros(3))}, r"init: expected real numbers for the scale s, got bool True"),
+        ({"init": (torch.tensor(True), torch.eye(3), torch.zeros(3))}, r"init: expected real numbers for the scale s, "
+                                                                       r"got Tensor of dtype torch.bool"),
+        ({"init": (1 + 0j, torch.eye(3), torch.zeros(3))}, r"init: expected real numbers for the scale s, got complex"),
+        ({"init": (torch.tensor(2 + 1j), torch.eye(3), torch.zeros(3))}, r"init: expected real numbers for the scale "
+                                                                         r"s, got Tensor of dtype torch.complex64"),
+        ({"init": (float("inf"), torch.eye(3), torch.zeros(3))}, r"init: expected finite values and a positive scale, "
+                                                                 r"got s = inf"),
+        ({"init": (1.0, "R", torch.zeros(3))}, r"init: expected real numbers for R, got str"),
+        ({"init": (1.0, torch.eye(3).bool(), torch.zeros(3))}, r"init: expected real numbers for R, got Tensor of "
+                                                                 r"dtype torch.bool"),
+        ({"init": (1.0, torch.eye(3), [0, 0, "a"])}, r"init: expected real numbers for t, got list"),
         ({"init": (1.0, torch.diag(torch.tensor([1.0, 1, -1])), torch.zeros(3))}, r"init: expected R to be a rotation .* det -1"),
         ({"init": (1.0, 2 * torch.eye(3), torch.zeros(3))}, r"init: expected R to be a rotation \(orthonormal"),
         ({"direction": "both"}, r"direction: expected one of"),

@@ -121,7 +121,9 @@ def test_report_dict_and_table(head):
     report = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
     assert isinstance(report, EvaluationReport) and isinstance(report.rigid, AlignmentResult)
     data = json.loads(json.dumps(report.as_dict()))
-    assert set(data) == {"same_topology", "num_points", "num_alignment_points", "rigid", "similarity"}
+    assert set(data) == {"same_topology", "num_points", "num_depth_points", "num_alignment_points", "rigid",
+                         "similarity", "warnings"}
+    assert data["warnings"] == [] and data["num_depth_points"] <= data["num_points"]
     assert {"point_to_plane_rmse", "correspondence_rmse", "depth_delta90", "scale", "icp_iterations"} <= set(data["rigid"])
     text = str(report)
     assert "point-to-plane RMSE" in text and "similarity" in text and "delta90" in text
@@ -157,7 +159,7 @@ def test_report_dict_and_table(head):
         ({"prediction_vertices": "2d"}, r"prediction_vertices: expected shape \(N, 3\)"),
         ({"reference_face_region": "short"}, r"reference_face_region: expected shape \(\d+,\)"),
         ({"reference_face_region": "float"}, r"reference_face_region: expected a bool tensor"),
-        ({"reference_face_region": "empty"}, r"reference_face_region: expected at least one"),
+        ({"reference_face_region": "empty"}, r"reference_face_region: expected at least 7 selected vertices .* got 0"),
         ({"prediction_faces": "range"}, r"prediction_faces: expected vertex indices in"),
         ({"correspondences": [[0, 1], [2, 3]]}, r"correspondences: expected at least 3 pairs"),
         ({"correspondences": [[0, 1], [2, 3], [4, 10**6]]}, r"correspondences: expected reference indices"),
@@ -307,3 +309,159 @@ def test_shares_vertex_order_checks_its_arguments():
     for share in (float("nan"), 1.5):
         with pytest.raises(ValueError, match="min_shared: expected"):
             shares_vertex_order(quad, quad, min_shared=share)
+
+
+def cm_head_with_shoulders(vertices, faces):
+    """A head in centimetres (vertices / 10) with a large triangle below it (shoulders): the whole mesh
+    spans more than 50 units, as a big ICT identity in cm does (47.5 for the mean head, 39-58)."""
+    cm = vertices / 10
+    low = cm[:, 1].min()
+    extra = torch.tensor([[-20.0, -20.0, 0.0], [20.0, -20.0, 0.0], [0.0, -20.0, -3.0]], dtype=cm.dtype)
+    extra[:, 1] += low
+    tri = torch.arange(3)[None] + len(cm)
+    return torch.cat([cm, extra]), torch.cat([faces, tri[:, [0, 2, 1]]])
+
+
+def test_a_reference_in_centimetres_is_refused_by_its_face_region(head):
+    """A reference in cm whose whole mesh spans over 50 units passed the millimetre check, and the
+    similarity row reported errors 10x too small without a warning."""
+    model, shape = head
+    ref, ref_faces = cm_head_with_shoulders(model.mean, model.faces)
+    region = torch.cat([model.face_region, torch.zeros(3, dtype=torch.bool)])
+    pairs = (model.landmarks, model.landmarks)
+    with pytest.raises(ValueError, match=r"reference_vertices: its face region \(reference_face_region\) spans 22\.\d "
+                                         r"units across, .* looks like it is in centimetres"):
+        evaluate_reconstruction(shape, model.faces, ref, ref_faces, region, pairs)
+
+
+def test_a_reference_in_centimetres_is_refused_ict(ict_npz):
+    """The audit's case: an ICT identity (seed 0, the first spanning over 520 mm) saved in cm."""
+    from facenormals.models import load_ict_npz
+
+    model = load_ict_npz(ict_npz, dtype=torch.float64)
+    used = torch.unique(model.faces)
+    heads = model(torch.randn(500, model.num_shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64))
+    spans = torch.stack([(v[used].amax(0) - v[used].amin(0)).norm() for v in heads])
+    truth = heads[int(torch.nonzero(spans > 520)[0])]
+    with pytest.raises(ValueError, match=r"reference_vertices: its face region .* looks like it is in centimetres"):
+        evaluate_reconstruction(model.mean, model.faces, truth / 10, model.faces, model.face_region, model)
+    with pytest.raises(ValueError, match=r"prediction_vertices: its 6 corresponding points spread 0\.1\d* times as "
+                                         r"wide as the reference's: is the prediction in centimetres"):
+        evaluate_reconstruction(truth / 10, model.faces, model.mean, model.faces, model.face_region, model)
+
+
+def test_a_prediction_in_centimetres_is_refused(head):
+    model, shape = head
+    pred, pred_faces = cm_head_with_shoulders(shape, model.faces)
+    with pytest.raises(ValueError, match=r"prediction_vertices: its 6 corresponding points spread 0\.\d+ times as "
+                                         r"wide as the reference's: is the prediction in centimetres"):
+        evaluate_reconstruction(pred, pred_faces, model.mean, model.faces, model.face_region,
+                                (model.landmarks, model.landmarks))
+    bigger = evaluate_reconstruction(1.9 * shape, model.faces, model.mean, model.faces, model.face_region, model)
+    assert bigger.similarity.scale == pytest.approx(1 / 1.9, rel=0.05)  # within 0.5-2: no error
+
+
+def test_a_similarity_scale_outside_its_range_is_warned_about(head):
+    model, shape = head
+    report = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model)
+    assert report.warnings == []
+    for scale in (0.3, 3.0):
+        odd = EvaluationReport(**{**report.__dict__, "similarity": AlignmentResult(**{**report.similarity.__dict__,
+                                                                                          "scale": scale})})
+        assert any(w.startswith(f"similarity alignment: it scales the prediction by {scale:g}, outside 0.5-2")
+                   for w in odd.warnings), odd.warnings
+
+
+@pytest.mark.parametrize("value", ["False", 1, 0, torch.tensor(True), [True]])
+def test_same_topology_must_be_none_or_a_bool(head, value):
+    """same_topology="False" was truthy: correspondence errors of a reordered mesh, 114 mm."""
+    model, shape = head
+    with pytest.raises(ValueError, match=r"same_topology: expected None, True or False, got "):
+        evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, model,
+                                same_topology=value)
+    assert not evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region,
+                                       (model, model), same_topology=np.bool_(False)).same_topology
+
+
+def test_correspondences_as_a_list_of_tensor_pairs(head):
+    model, shape = head
+    index = [model.landmarks[n] for n in DEFAULT_ALIGNMENT_LANDMARKS]
+    expected = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region,
+                                       torch.tensor([[i, i] for i in index]))
+    for pairs in ([torch.tensor([i, i]) for i in index], tuple(np.array([i, i]) for i in index)):
+        report = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, pairs)
+        assert report.similarity.point_to_plane_rmse == expected.similarity.point_to_plane_rmse
+
+
+@pytest.mark.parametrize(
+    "pairs,match",
+    [
+        ("index lists", r"correspondences: expected \(K, 2\) integer pairs .*got shape \(2, 6\) \(for index lists"),
+        ([torch.tensor([0, 0]), torch.tensor([1, 1, 1]), torch.tensor([2, 2])],
+         r"correspondences: expected \(K, 2\) integer pairs .*got list of 3 Tensor"),
+        ([[0, 0], [1], [2, 2]], r"correspondences: expected \(K, 2\) integer pairs .*got list of 3 list"),
+        ("abc", r"correspondences: expected \(K, 2\) integer pairs .*got str"),
+        ([["a", "b"], ["c", "d"], ["e", "f"]], r"correspondences: expected \(K, 2\) integer pairs"),
+        (torch.zeros(6, 2, dtype=torch.complex64), r"correspondences: expected integer index pairs, got dtype "
+                                                   r"torch.complex64"),
+        (object(), r"correspondences: expected \(K, 2\) integer pairs .*got object"),
+    ],
+)
+def test_bad_correspondence_formats_name_the_argument(head, pairs, match):
+    """A (prediction indices, reference indices) tuple and a list of 2-element tensors raised TypeError."""
+    model, shape = head
+    if pairs == "index lists":
+        index = torch.tensor([model.landmarks[n] for n in DEFAULT_ALIGNMENT_LANDMARKS])
+        pairs = (index, index)
+    with pytest.raises(ValueError, match=match):
+        evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, pairs)
+
+
+def test_the_depth_coverage_warning_counts_one_total(head):
+    """The warning said "1882 of the 5470 reference points (41 %)", 41 % being of the 4556 front-facing ones."""
+    model, shape = head
+    centroids = shape[model.faces].mean(1)
+    holed = model.faces[centroids[:, 0] > 25.0]
+    oblique = torch.tensor([0.6, 0.0, 1.0], dtype=torch.float64)  # 31° off: some of the face region faces away
+    report = evaluate_reconstruction(shape, holed, model.mean, model.faces, model.face_region,
+                                     (model.landmarks, model.landmarks), view_direction=oblique)
+    for result in (report.rigid, report.similarity):
+        count, total = result.depth.count, round(result.depth.count / result.depth.coverage)
+        assert total < report.num_points  # the grazing and back-facing ones are left out
+        message = (f"only {count} of the {total} front-facing reference points "
+                   f"({100 * count / total:.0f} %) meet the prediction's surface")
+        assert any(message in w for w in report.warnings), (message, report.warnings)
+        assert report.num_depth_points == total
+    everything = evaluate_reconstruction(shape, holed, model.mean, model.faces, model.face_region,
+                                         (model.landmarks, model.landmarks), view_direction=oblique,
+                                         depth_front_facing=False)
+    assert everything.num_depth_points == everything.num_points
+    assert any(f"of the {everything.num_points} reference points (" in w for w in everything.warnings)
+
+
+def test_a_face_region_too_small_for_icp_names_the_region(head):
+    """Three region vertices failed in ICP, naming its internal argument target_normals."""
+    model, shape = head
+    nose = model.mean[model.landmarks["nose_tip"]]
+    region = torch.zeros_like(model.face_region)
+    region[(model.mean - nose).norm(dim=1).argsort()[:3]] = True  # facing the viewer
+    with pytest.raises(ValueError, match=r"reference_face_region: expected at least 7 selected vertices .* got 3"):
+        evaluate_reconstruction(shape, model.faces, model.mean, model.faces, region, model)
+
+
+def test_the_transform_follows_the_prediction_dtype_and_device(head, device):
+    model, shape = head
+    for dtype in (torch.float32, torch.float64):
+        report = evaluate_reconstruction(shape.to(device, dtype), model.faces.to(device), model.mean.to(device),
+                                         model.faces.to(device), model.face_region.to(device), model)
+        for result in (report.rigid, report.similarity):
+            assert result.rotation.dtype == dtype and result.translation.dtype == dtype
+            assert result.rotation.device == device and result.translation.device == device
+
+
+def test_the_json_report_keeps_the_warnings(head):
+    model, shape = head
+    swapped = {**model.landmarks, "chin": model.landmarks["nose_tip"], "nose_tip": model.landmarks["chin"]}
+    report = evaluate_reconstruction(shape, model.faces, model.mean, model.faces, model.face_region, (swapped, model))
+    data = json.loads(json.dumps(report.as_dict()))
+    assert report.warnings and data["warnings"] == report.warnings

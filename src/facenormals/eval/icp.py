@@ -18,6 +18,7 @@ so directions the surface does not constrain (rotation about a sphere's centre) 
 
 from __future__ import annotations
 
+import reprlib
 from dataclasses import dataclass
 from numbers import Real
 
@@ -30,6 +31,7 @@ from facenormals.core.check import check_finite, check_floating, check_integer, 
 __all__ = ["ICPResult", "icp_point_to_plane"]
 
 _DIRECTIONS = ("source_to_target", "target_to_source")
+_INTEGER_DTYPES = (torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
 
 @dataclass(frozen=True)
@@ -63,12 +65,30 @@ def _rodrigues(omega: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) / angle * k + (1.0 - np.cos(angle)) / angle**2 * (k @ k)
 
 
+def _kind(x: object) -> str:
+    if isinstance(x, (Tensor, np.ndarray)):
+        return f"{type(x).__name__} of dtype {x.dtype}"
+    return f"{type(x).__name__} {reprlib.repr(x)}"
+
+
+def _real_array(x: object, what: str) -> Tensor:
+    """``x`` (a number, sequence, array or tensor of real numbers, no bools) as a float64 CPU tensor."""
+    error = ValueError(f"init: expected real numbers for {what}, got {_kind(x)}")
+    try:
+        out = torch.as_tensor(x if isinstance(x, Tensor) else np.asarray(x))
+    except (TypeError, ValueError, RuntimeError):  # strings, ragged or object sequences
+        raise error from None
+    if not (out.dtype.is_floating_point or out.dtype in _INTEGER_DTYPES):  # bool, complex
+        raise error
+    return out.detach().cpu().double()
+
+
 def _parse_init(init, dtype=np.float64) -> tuple[float, np.ndarray, np.ndarray]:
     if init is None:
         return 1.0, np.eye(3), np.zeros(3)
     if not isinstance(init, (tuple, list)) or len(init) != 3:
         raise ValueError(f"init: expected a tuple (s, R, t), got {type(init).__name__}")
-    s, rotation, translation = (torch.as_tensor(x).detach().cpu().double() for x in init)
+    s, rotation, translation = (_real_array(x, what) for x, what in zip(init, ("the scale s", "R", "t")))
     if s.numel() != 1:
         raise ValueError(f"init: expected a single scale s, got shape {tuple(s.shape)}")
     if rotation.numel() != 9:
@@ -77,7 +97,7 @@ def _parse_init(init, dtype=np.float64) -> tuple[float, np.ndarray, np.ndarray]:
         raise ValueError(f"init: expected t of shape (3,) or (1, 3), got {tuple(translation.shape)}")
     out = float(s), rotation.reshape(3, 3).numpy().astype(dtype), translation.reshape(3).numpy().astype(dtype)
     if not (np.isfinite(out[0]) and out[0] > 0 and np.isfinite(out[1]).all() and np.isfinite(out[2]).all()):
-        raise ValueError("init: expected finite values and a positive scale")
+        raise ValueError(f"init: expected finite values and a positive scale, got s = {out[0]:g}")
     error, det = float(np.abs(out[1].T @ out[1] - np.eye(3)).max()), float(np.linalg.det(out[1]))
     if error > 1e-5 or det < 0:  # float32 rotations are orthonormal to ~1e-7
         raise ValueError(f"init: expected R to be a rotation (orthonormal, det +1), got max |RᵀR − I| = {error:.2g} "
@@ -103,8 +123,9 @@ def icp_point_to_plane(
         target_points: the fixed points :math:`y_j` (mm).
         target_normals: normals :math:`n_j` at the target points (normalised here; a zero normal
             removes its point).
-        init: starting transform ``(s, R, t)``; scalars/``(1,)``, ``(3, 3)``/``(1, 3, 3)``,
-            ``(3,)``/``(1, 3)`` (the output of :func:`fit_similarity` fits). Default: identity.
+        init: starting transform ``(s, R, t)`` of real numbers: ``s`` a positive number or
+            ``(1,)`` tensor (not a bool), ``R`` ``(3, 3)``/``(1, 3, 3)``, ``t`` ``(3,)``/``(1, 3)``
+            (the output of :func:`fit_similarity` fits). Default: identity.
         scale: also fit a scale (similarity ICP); otherwise the scale of ``init`` is kept.
         max_iterations: the most updates.
         tolerance: stop when the update is small, :math:`\max(\lVert\omega\rVert, |\sigma|,

@@ -70,6 +70,15 @@ ALIGNMENT_RMS_WARNING = 20.0
 #: Below this share of the reference's points finding the prediction's surface along the viewing
 #: direction, the depth statistics describe a fraction of the face (holes, a cropped or degenerate mesh).
 DEPTH_COVERAGE_WARNING = 0.5
+#: Smallest bounding-box diagonal (mm) of the reference face region: a face region spans about
+#: 150-250 mm in mm (the ICT region: 229 mm for the mean head, 149-362 for identities y ~ 3·N(0, 1))
+#: but 15-36 units in centimetres, which the whole head's 50-unit floor can let through. 50 keeps
+#: smaller regions in mm (a nose and cheeks) and stays above any face in cm.
+FACE_REGION_MIN_SPAN = 50.0
+#: Plausible range of the size ratio of the two meshes (reference / prediction) and of the
+#: similarity alignment's scale: the six landmarks of ICT identities y ~ 3·N(0, 1) against the mean
+#: head spread 0.64-1.62 times as wide; meshes in centimetres and millimetres give 10 or 0.1.
+SCALE_RANGE = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -115,6 +124,8 @@ class EvaluationReport:
         same_topology: whether correspondence errors were computed.
         num_points: reference face-region vertices scored.
         num_alignment_points: corresponding points of the rough alignment.
+        num_depth_points: reference points of the depth statistics (the front-facing ones of the
+            face region by default); ``None``: ``num_points``.
     """
 
     rigid: AlignmentResult
@@ -122,15 +133,23 @@ class EvaluationReport:
     same_topology: bool
     num_points: int
     num_alignment_points: int
+    num_depth_points: int | None = None
 
     def as_dict(self) -> dict[str, object]:
+        """Plain JSON-serialisable values, :attr:`warnings` (a list of strings) included."""
         return {
             "same_topology": self.same_topology,
             "num_points": self.num_points,
+            "num_depth_points": self._depth_total,
             "num_alignment_points": self.num_alignment_points,
             "rigid": self.rigid.as_dict(),
             "similarity": self.similarity.as_dict(),
+            "warnings": self.warnings,
         }
+
+    @property
+    def _depth_total(self) -> int:
+        return self.num_points if self.num_depth_points is None else self.num_depth_points
 
     def __str__(self) -> str:
         rows = [
@@ -160,8 +179,10 @@ class EvaluationReport:
     def warnings(self) -> list[str]:
         """Signs that the numbers may be those of a wrong alignment rather than of the shape: the
         rough alignment's points left more than :data:`ALIGNMENT_RMS_WARNING` mm apart (wrong
-        correspondences: left and right swapped, another vertex order), or depth statistics over
-        less than :data:`DEPTH_COVERAGE_WARNING` of the reference points. (ICP's own convergence is
+        correspondences: left and right swapped, another vertex order), depth statistics over
+        less than :data:`DEPTH_COVERAGE_WARNING` of the reference points they consider, or a
+        similarity scale outside :data:`SCALE_RANGE` (meshes of such different sizes are no
+        reconstruction of one another, or not in one unit). (ICP's own convergence is
         in the table but no warning: between two different heads its closest pairs often end in a
         2-cycle, which :func:`icp_point_to_plane` detects and counts as converged.)"""
         out = []
@@ -173,10 +194,17 @@ class EvaluationReport:
                            f"{ALIGNMENT_RMS_WARNING:g} mm the correspondences are likely wrong (left and right "
                            "swapped, another vertex order): check them")
             if not result.depth.coverage >= DEPTH_COVERAGE_WARNING:  # NaN too
-                out.append(f"{name} alignment: only {result.depth.count} of the {self.num_points} reference points "
+                total = self._depth_total
+                which = "front-facing reference points" if total < self.num_points else "reference points"
+                out.append(f"{name} alignment: only {result.depth.count} of the {total} {which} "
                            f"({100 * result.depth.coverage:.0f} %) meet the prediction's surface along the viewing "
                            "direction, so the depth statistics describe little of the face (holes, a cropped "
                            "prediction, or triangles without area)")
+        low, high = SCALE_RANGE
+        if not low <= self.similarity.scale <= high:
+            out.append(f"similarity alignment: it scales the prediction by {self.similarity.scale:.3g}, outside "
+                       f"{low:g}-{high:g}; the prediction is then no reconstruction of the reference's size (wrong "
+                       "correspondences, or meshes in different units: both must be in millimetres)")
         return out
 
 
@@ -202,6 +230,38 @@ def _named_pairs(prediction: Mapping[str, int], reference: Mapping[str, int], na
         return landmark_correspondences(prediction, reference, names)
     except ValueError as error:  # name the argument the caller passed
         raise ValueError(f"correspondences: {error}") from None
+
+
+def _describe(x: object) -> str:
+    if isinstance(x, (Tensor, np.ndarray)):
+        return f"{type(x).__name__} of shape {tuple(x.shape)} and dtype {x.dtype}"
+    if isinstance(x, (tuple, list)):
+        kinds = sorted({type(c).__name__ for c in x})
+        return f"{type(x).__name__} of {len(x)} {'/'.join(kinds) or 'items'}"
+    return type(x).__name__
+
+
+def _index_pairs(correspondences: object) -> Tensor:
+    """A ``(K, 2)`` integer tensor (CPU) from a tensor, an array or a sequence of index pairs (tensors too)."""
+    expected = "correspondences: expected (K, 2) integer pairs (prediction index, reference index)"
+    if isinstance(correspondences, Tensor):
+        pairs = correspondences.detach().cpu()
+    else:
+        try:
+            if (isinstance(correspondences, (tuple, list)) and correspondences
+                    and all(isinstance(c, Tensor) for c in correspondences)):
+                pairs = torch.stack([c.detach().cpu() for c in correspondences])
+            else:
+                pairs = torch.as_tensor(np.asarray(correspondences))
+        except (TypeError, ValueError, RuntimeError):  # ragged, strings, objects
+            raise ValueError(f"{expected}, got {_describe(correspondences)}") from None
+    if pairs.dim() != 2 or pairs.shape[1] != 2:
+        hint = (" (for index lists (prediction_indices, reference_indices) pass torch.stack(them, dim=1))"
+                if pairs.dim() == 2 and pairs.shape[0] == 2 else "")
+        raise ValueError(f"{expected}, got shape {tuple(pairs.shape)}{hint}")
+    if pairs.dtype.is_floating_point or pairs.dtype.is_complex or pairs.dtype == torch.bool:
+        raise ValueError(f"correspondences: expected integer index pairs, got dtype {pairs.dtype}")
+    return pairs.long()
 
 
 def _resolve_pairs(
@@ -234,11 +294,7 @@ def _resolve_pairs(
         pairs = _named_pairs(_landmarks_of(correspondences[0]), _landmarks_of(correspondences[1]), landmark_names)
         what = "landmark vertex indices"
     else:
-        pairs = torch.as_tensor(correspondences)
-        check_shape(pairs, ["K", 2], "correspondences")
-        if pairs.dtype.is_floating_point or pairs.dtype == torch.bool:
-            raise ValueError(f"correspondences: expected integer index pairs, got dtype {pairs.dtype}")
-        pairs, what = pairs.long(), "indices"
+        pairs, what = _index_pairs(correspondences), "indices"
     for column, size, mesh in ((0, num_prediction, "prediction"), (1, num_reference, "reference")):
         col = pairs[:, column]
         if col.numel() and (int(col.min()) < 0 or int(col.max()) >= size):
@@ -327,6 +383,48 @@ def _check_facing(normals: Tensor, direction: Tensor) -> None:
         )
 
 
+def _check_region_size(points: Tensor) -> None:
+    """The face region must be a face's size in millimetres (a reference in cm passes the whole-mesh check)."""
+    span = float((points.amax(0) - points.amin(0)).norm())
+    if span < FACE_REGION_MIN_SPAN:
+        raise ValueError(
+            f"reference_vertices: its face region (reference_face_region) spans {span:.3g} units across, not the "
+            f"150-250 of a face in millimetres (at least {FACE_REGION_MIN_SPAN:g}); the reference looks like it is in "
+            "centimetres (vertices times 10) or metres (times 1000), and every error is reported in mm"
+        )
+
+
+def _rms_radius(points: Tensor) -> float:
+    return float((points - points.mean(0)).square().sum(1).mean().sqrt())
+
+
+def _check_relative_size(pred_points: Tensor, ref_points: Tensor) -> None:
+    """The rough alignment's corresponding points must spread about as wide in both meshes: a
+    similarity alignment would otherwise hide a unit mix-up (its errors look plausible)."""
+    ratio = _rms_radius(ref_points) / _rms_radius(pred_points)
+    low, high = SCALE_RANGE
+    if not low <= ratio <= high:
+        unit = ("is the prediction in centimetres (vertices times 10)?" if ratio > high else
+                "is the prediction in another unit, or the reference in centimetres (times 10)?")
+        raise ValueError(
+            f"prediction_vertices: its {pred_points.shape[0]} corresponding points spread {1 / ratio:.3g} times as wide "
+            f"as the reference's: {unit} Both meshes must be in millimetres; a similarity alignment would scale by "
+            f"{ratio:.3g}, outside {low:g}-{high:g}, and hide the mix-up (or the correspondences pick points of "
+            "different extent)"
+        )
+
+
+def _rough_alignment(pred_points: Tensor, ref_points: Tensor, scale: bool) -> tuple[tuple[Tensor, ...], float]:
+    """Closed-form fit ``(s, R, t)`` of corresponding points ``(K, 3)`` and its RMS distance (mm)."""
+    try:
+        init = fit_similarity(pred_points[None], ref_points[None], scale=scale)
+    except ValueError as error:
+        raise ValueError(f"correspondences: the rough alignment's {pred_points.shape[0]} point pairs cannot fix a "
+                         f"transform ({error})") from None
+    moved = apply_similarity(pred_points[None], *init)[0]
+    return init, float((moved - ref_points).square().sum(1).mean().sqrt())
+
+
 def evaluate_reconstruction(
     prediction_vertices: Tensor,
     prediction_faces: Tensor,
@@ -350,15 +448,18 @@ def evaluate_reconstruction(
         prediction_faces: ``(G, 3)`` predicted triangles.
         reference_vertices: ``(N, 3)`` reference vertices (mm, model frame: face along −z).
         reference_faces: ``(F, 3)`` reference triangles (for the reference normals).
-        reference_face_region: ``(N,)`` bool mask of the scored reference vertices.
+        reference_face_region: ``(N,)`` bool mask of the scored reference vertices (at least 7,
+            spanning at least :data:`FACE_REGION_MIN_SPAN` = 50 mm, above any face in cm).
         correspondences: the rough alignment's corresponding points: a ``(K, 2)`` integer tensor
-            or sequence of ``(prediction index, reference index)`` pairs (K ≥ 3); a pair
+            or array, or a sequence of ``(prediction index, reference index)`` pairs (lists or
+            2-element tensors; K ≥ 3); a pair
             ``(prediction_landmarks, reference_landmarks)`` of name → vertex mappings or
             :class:`~facenormals.models.MorphableModel`-like objects with ``.landmarks`` (the
             ``landmark_names`` are used; iBUG-68 names are understood); one mapping/model when the
             topology is shared; or ``None``: all face-region vertices when the topology is shared.
-        same_topology: whether vertex ``i`` of both meshes is the same point; default: true when
-            the vertex counts agree and :func:`shares_vertex_order` says so.
+        same_topology: ``True`` or ``False``, whether vertex ``i`` of both meshes is the same
+            point; default ``None``: true when the vertex counts agree and
+            :func:`shares_vertex_order` says so.
         landmark_names: landmarks used from landmark mappings (default: eye corners ×4, nose tip,
             chin).
         icp_max_iterations: ICP iterations (see :func:`icp_point_to_plane`).
@@ -371,15 +472,19 @@ def evaluate_reconstruction(
             the whole face region.
 
     Returns:
-        :class:`EvaluationReport`.
+        :class:`EvaluationReport`; the transforms' ``rotation`` and ``translation`` have the dtype
+        and device of ``prediction_vertices`` (computed in float64 on the CPU).
 
     Raises:
         ValueError: on bad shapes, dtypes, NaN vertices, out-of-range indices, missing landmarks,
-            ``same_topology=True`` with different vertex counts, a mesh not in millimetres (its
-            bounding box spans less than 50 or more than 5,000 units), triangles wound inward, or a
-            reference face region facing more than 45° away from the viewer (not in the model frame).
-            A sign of a wrong alignment, the rough alignment's points more than 20 mm apart, does not
-            raise: it is in :attr:`EvaluationReport.warnings`; ICP's convergence is in
+            ``same_topology`` not ``None``/``True``/``False`` or ``True`` with different vertex
+            counts, a mesh not in millimetres (its bounding box spans less than 50 or more than
+            5,000 units; the reference face region less than 50; the rough alignment's points
+            spread more than twice as wide in one mesh as in the other), triangles wound inward,
+            or a reference face region of fewer than 7 vertices or facing more than 45° away from
+            the viewer (not in the model frame). A sign of a wrong alignment, the rough alignment's
+            points more than 20 mm apart or a similarity scale outside 0.5-2, does not raise: it is
+            in :attr:`EvaluationReport.warnings`; ICP's convergence is in
             :attr:`AlignmentResult.icp_converged`.
 
     Example:
@@ -399,8 +504,12 @@ def evaluate_reconstruction(
     if reference_face_region.dtype != torch.bool:
         raise ValueError(f"reference_face_region: expected a bool tensor, got dtype {reference_face_region.dtype}")
     region = reference_face_region.detach().cpu()
-    if not bool(region.any()):
-        raise ValueError("reference_face_region: expected at least one selected vertex")
+    if int(region.sum()) < 7:  # ICP's unknowns with scale
+        raise ValueError(f"reference_face_region: expected at least 7 selected vertices (the unknowns of a similarity "
+                         f"alignment), got {int(region.sum())}")
+    if same_topology is not None and not isinstance(same_topology, (bool, np.bool_)):
+        raise ValueError(f"same_topology: expected None, True or False, got {type(same_topology).__name__} "
+                         f"{same_topology!r}")
     same_shape = pred.shape[0] == ref.shape[0]
     if same_topology is None:
         same_topology = same_shape and shares_vertex_order(prediction_faces, reference_faces)
@@ -425,6 +534,7 @@ def evaluate_reconstruction(
             "keeps vertices its triangles no longer use: leave them out of the region"
         )
     points, point_normals = ref[region], normals[region]
+    _check_region_size(points)
     if view_direction is not None:
         check_shape(view_direction, [3], "view_direction")
         check_floating(view_direction, "view_direction")
@@ -438,15 +548,13 @@ def evaluate_reconstruction(
     depth_points = points[point_normals @ direction < 0] if depth_front_facing else points
     pred_faces_t = torch.from_numpy(pred_faces)
     surface = pred[torch.from_numpy(np.unique(pred_faces))]  # ICP pairs with the surface, not stray vertices
+    pred_pairs, ref_pairs = pred[pairs[:, 0]], ref[pairs[:, 1]]
+    rough = {name: _rough_alignment(pred_pairs, ref_pairs, name == "similarity") for name in ALIGNMENTS}
+    _check_relative_size(pred_pairs, ref_pairs)
+    like = {"dtype": prediction_vertices.dtype, "device": prediction_vertices.device}  # the outputs follow the input
     results = {}
-    for name, scale in (("rigid", False), ("similarity", True)):
-        try:
-            init = fit_similarity(pred[pairs[:, 0]][None], ref[pairs[:, 1]][None], scale=scale)
-        except ValueError as error:
-            raise ValueError(f"correspondences: the rough alignment's {pairs.shape[0]} point pairs cannot fix a "
-                             f"transform ({error})") from None
-        moved = apply_similarity(pred[pairs[:, 0]][None], *init)[0]
-        alignment_rms = float((moved - ref[pairs[:, 1]]).square().sum(1).mean().sqrt())
+    for name in ALIGNMENTS:
+        (init, alignment_rms), scale = rough[name], name == "similarity"
         icp = icp_point_to_plane(
             surface,
             points,
@@ -467,8 +575,8 @@ def evaluate_reconstruction(
             correspondence_rmse=None if corr is None else float(corr.square().mean().sqrt()),
             depth=depth,
             scale=icp.s,
-            rotation=icp.R,
-            translation=icp.t,
+            rotation=icp.R.to(**like),
+            translation=icp.t.to(**like),
             icp_iterations=icp.iterations,
             icp_converged=icp.converged,
             alignment_rms=alignment_rms,
@@ -479,6 +587,7 @@ def evaluate_reconstruction(
         same_topology=bool(same_topology),
         num_points=int(points.shape[0]),
         num_alignment_points=int(pairs.shape[0]),
+        num_depth_points=int(depth_points.shape[0]),
     )
 
 
