@@ -63,7 +63,7 @@ def test_normals_agree_with_vertex_normals_at_visible_vertices(generator, sample
     pixels, depth = project_points(vertices, R, t, K)
     normals = vertex_normals(vertices, model.faces) @ R.transpose(1, 2)
     zbuffer = torch.from_numpy(samples.depth).clone()
-    zbuffer[~torch.from_numpy(samples.mask)] = 0.0
+    zbuffer[~torch.from_numpy(samples.mask)] = 1e-6  # an occluder in front of everything
     visible = visible_vertices(pixels, depth, normals, transform_points(vertices, R, t), zbuffer)
     sampled, inside = sample_bicubic(torch.from_numpy(samples.normals), pixels)
     cosine = torch.nn.functional.cosine_similarity(sampled, normals, dim=-1)
@@ -327,6 +327,29 @@ def test_bad_generate_arguments(generator):
     with pytest.raises(ValueError, match="config: expected a SynthConfig"):
         type(generator)(generator.model, config={"fill": (0.4, 0.9)})
     assert len(generator.generate(0, [])) == 0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"yaw": "90"}, r"yaw: expected a real number, got str '90'"),  # was TypeError from a comparison
+    ({"photo_probability": None}, r"photo_probability: expected a real number, got NoneType None"),
+    ({"identity_scale": True}, r"identity_scale: expected a real number, got bool True"),
+    ({"principal_jitter": [6.0]}, r"principal_jitter: expected a real number, got list"),
+    ({"background_folders": ("a", 3)}, r"background_folders: expected a tuple of folders \(str or Path\), got"),
+    ({"background_folders": None}, r"background_folders: expected a tuple of folders \(str or Path\), got None"),
+])
+def test_config_values_of_the_wrong_type_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        SynthConfig(**kwargs)
+
+
+def test_config_lists_become_tuples_so_that_it_hashes():
+    """background_folders=["/tmp"] stayed a list: the frozen dataclass could not be hashed."""
+    from pathlib import Path
+
+    config = SynthConfig(background_folders=["/tmp", Path("photos")], fill=[0.5, 0.8], yaw=np.float32(30))
+    assert config.background_folders == ("/tmp", "photos") and config.fill == (0.5, 0.8)
+    assert hash(config) == hash(SynthConfig(background_folders=("/tmp", "photos"), fill=(0.5, 0.8), yaw=30.0))
+    assert type(config.yaw) is float
 
 
 def test_config_round_trip():

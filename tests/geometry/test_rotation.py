@@ -149,3 +149,40 @@ def test_gradients_stay_finite_where_the_unused_branch_has_zero_arguments():
     rotation_matrix_to_euler(euler_to_rotation_matrix(angles)).sum().backward()
     assert torch.isfinite(angles.grad).all()
     assert_close(angles.grad, torch.ones_like(angles.grad), rtol=0, atol=1e-9)
+
+
+def test_matrices_that_are_not_rotations_are_errors():
+    """Regression: a reflection gave (0, 0, π) and 2 I gave (0, 0, 0), silently; neither gives the
+    matrix back. Now a matrix off orthonormal by more than 1e-3, or with det <= 0, is an error naming
+    how many of the batch."""
+    good = euler_to_rotation_matrix(random_angles(3, torch.float32, seed=7))
+    for bad in (torch.diag(torch.tensor([1.0, 1.0, -1.0])), 2 * torch.eye(3), -torch.eye(3), torch.zeros(3, 3),
+                good[0] * 1.002):
+        batch = torch.cat([good[:2], bad[None], good[2:]])
+        with pytest.raises(ValueError, match=r"rotation: expected rotation matrices, orthonormal with det \+1 "
+                                             r"\(max \|R\^T R - I\| <= 0.001\), got 1 of 4 that are not"):
+            rotation_matrix_to_euler(batch)
+    with pytest.raises(ValueError, match="got 2 of 2 that are not"):
+        rotation_matrix_to_euler(torch.stack([torch.diag(torch.tensor([-1.0, 1.0, 1.0])), 0.5 * torch.eye(3)]))
+    assert rotation_matrix_to_euler(torch.zeros(0, 3, 3)).shape == (0, 3)
+
+
+def test_near_orthonormal_float32_and_half_precision_rotations_are_accepted():
+    """float32 rotations from an SVD (or cv2.Rodrigues) are ~1e-6 off orthonormal; rounding to
+    bfloat16 puts them ~5e-3 off, within its 8 ulps: all give their angles."""
+    angles = random_angles(50, torch.float64, seed=8)
+    R = euler_to_rotation_matrix(angles)
+    g = torch.Generator().manual_seed(9)
+    U, _, Vh = torch.linalg.svd((R + 1e-2 * torch.randn(R.shape, generator=g, dtype=R.dtype)).float())
+    projected = U @ Vh  # the nearest orthonormal matrix; det +1 this close to a rotation
+    assert_close(euler_to_rotation_matrix(rotation_matrix_to_euler(projected)), projected, atol=1e-5, rtol=0)
+    assert_close(rotation_matrix_to_euler(R.float()).double(), angles, atol=1e-5, rtol=0)
+    cv2 = pytest.importorskip("cv2")
+    vector = np.array([0.3, -0.2, 0.5], np.float32)
+    rodrigues = torch.from_numpy(cv2.Rodrigues(vector)[0].astype(np.float32))[None]
+    assert_close(euler_to_rotation_matrix(rotation_matrix_to_euler(rodrigues)), rodrigues, atol=1e-5, rtol=0)
+    for dtype in (torch.float16, torch.bfloat16):
+        back = rotation_matrix_to_euler(R.to(dtype))  # no error
+        assert back.dtype == dtype
+        away = angles[:, 1].abs() < 1.0  # bfloat16 loses roll and yaw near the gimbal lock
+        assert_close(euler_to_rotation_matrix(back[away].double()), R[away], atol=0.05, rtol=0)

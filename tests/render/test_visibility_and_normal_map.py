@@ -83,7 +83,7 @@ def test_unoccluded_points_against_a_loop():
                 assert not bool(got[b, i])
                 continue
             x, y = float(pixels[b, i, 0]), float(pixels[b, i, 1])
-            u, v = round(x), round(y)
+            u, v = math.floor(x + 0.5), math.floor(y + 0.5)  # the pixel whose square holds the point
             inside = 0 <= u <= 6 and 0 <= v <= 4 and float(depth[b, i]) > 0
             surface = float(zbuffer[b, min(max(v, 0), 4), min(max(u, 0), 6)])
             left, top = math.floor(x), math.floor(y)
@@ -238,9 +238,84 @@ def test_splat_zbuffer_refuses_a_nan_depth_at_a_finite_pixel():
     projects nowhere and stays allowed."""
     from facenormals.render import splat_zbuffer
 
-    with pytest.raises(ValueError, match="depth: expected a depth for every finite pixel, got 1 NaN"):
+    with pytest.raises(ValueError, match="depth: expected a finite depth for every finite pixel, got 1 NaN or infinite"):
         splat_zbuffer(torch.tensor([[[1.0, 1.0]]]), torch.tensor([[float("nan")]]), (3, 3), 0)
     zbuf = splat_zbuffer(torch.tensor([[[float("nan"), 1.0], [1.0, 1.0]]]), torch.tensor([[float("nan"), 2.0]]), (3, 3), 0)
     assert zbuf[0, 1, 1] == 2.0
     with pytest.raises(ValueError, match="depth"):
         splat_zbuffer(torch.tensor([[[1.0, 1.0]]]), torch.tensor([[2.0]], dtype=torch.float64), (3, 3), 0)
+
+
+def test_a_zbuffer_with_zero_or_negative_depths_is_an_error():
+    """Regression: a z-buffer with 0 on background (OpenGL's and pyrender's convention) was accepted
+    and hid every point over the background, silently; only NaN was refused."""
+    from facenormals.render import splat_zbuffer
+
+    zbuffer = torch.full((1, 4, 4), math.inf)
+    zbuffer[0, :2, :2] = 500.0
+    pixels, depth = torch.tensor([[[0.0, 0.0], [3.0, 3.0]]]), torch.tensor([[500.0, 520.0]])
+    assert unoccluded_points(pixels, depth, zbuffer).tolist() == [[True, True]]
+    zero = torch.where(torch.isinf(zbuffer), torch.zeros_like(zbuffer), zbuffer)
+    with pytest.raises(ValueError, match=r"zbuffer: expected depths > 0 with inf on background, got 12 values <= 0 "
+                                         r"\(minimum 0\)"):
+        unoccluded_points(pixels, depth, zero)
+    for bad in (-zbuffer.nan_to_num(posinf=1.0), zbuffer.index_fill(2, torch.tensor([3]), -math.inf)):
+        with pytest.raises(ValueError, match="zbuffer: expected depths > 0 with inf on background"):
+            unoccluded_points(pixels, depth, bad)
+    normals, camera = torch.tensor([[[0.0, 0.0, -1.0]] * 2]), torch.tensor([[[0.0, 0.0, 500.0], [0.0, 0.0, 520.0]]])
+    with pytest.raises(ValueError, match="zbuffer: expected depths > 0"):
+        visible_vertices(pixels, depth, normals, camera, zero)
+    # a splatted z-buffer is always accepted: it keeps only depths > 0
+    splat = splat_zbuffer(torch.tensor([[[1.0, 1.0], [2.0, 2.0]]]), torch.tensor([[-3.0, 0.0]]), (4, 4), 1)
+    assert bool(torch.isinf(splat).all()) and unoccluded_points(pixels, depth, splat).tolist() == [[True, True]]
+
+
+def test_splat_zbuffer_refuses_an_infinite_depth_at_a_finite_pixel_as_unoccluded_points_does():
+    """Regression: splat_zbuffer dropped such a point silently while unoccluded_points refused it."""
+    from facenormals.render import splat_zbuffer
+
+    for value in (math.inf, -math.inf):
+        depth = torch.tensor([[2.0, value]])
+        pixels = torch.tensor([[[1.0, 1.0], [2.0, 1.0]]])
+        with pytest.raises(ValueError, match="depth: expected a finite depth for every finite pixel, got 1 NaN or "
+                                             "infinite"):
+            splat_zbuffer(pixels, depth, (3, 3), 0)
+        with pytest.raises(ValueError, match="depth: expected finite values"):
+            unoccluded_points(pixels, depth, torch.full((1, 3, 3), 5.0))
+        nowhere = torch.tensor([[[1.0, 1.0], [math.inf, 1.0]]])  # e.g. a point on the camera's plane
+        assert splat_zbuffer(nowhere, depth, (3, 3), 0)[0, 1, 1] == 2.0
+        assert unoccluded_points(nowhere, depth, torch.full((1, 3, 3), 5.0)).tolist() == [[True, False]]
+
+
+@pytest.mark.parametrize("width", [4, 5])
+def test_the_image_is_the_union_of_half_open_pixel_squares_on_every_edge(width):
+    """Regression: torch.round rounds half to even, so u = W - 0.5 was inside for odd W and outside
+    for even W, while u = -0.5 was always inside. Pixel (u, v) now covers [u - 0.5, u + 0.5) x
+    [v - 0.5, v + 0.5) on every edge, in unoccluded_points and splat_zbuffer alike."""
+    from facenormals.render import splat_zbuffer
+
+    height = 3
+    zbuffer = torch.full((1, height, width), 5.0, dtype=torch.float64)
+    cases = [((-0.5, 1.0), (0, 1)), ((-0.5 - 1e-9, 1.0), None), ((width - 0.5 - 1e-9, 1.0), (width - 1, 1)),
+             ((width - 0.5, 1.0), None), ((1.0, -0.5), (1, 0)), ((1.0, -0.5 - 1e-9), None),
+             ((1.0, height - 0.5 - 1e-9), (1, height - 1)), ((1.0, height - 0.5), None), ((1.5, 1.5), (2, 2)),
+             ((2.5, 0.5), (3, 1))]
+    for (u, v), pixel in cases:
+        point, depth = torch.tensor([[[u, v]]], dtype=torch.float64), torch.tensor([[5.0]], dtype=torch.float64)
+        assert bool(unoccluded_points(point, depth, zbuffer)[0, 0]) == (pixel is not None), (u, v)
+        splat = splat_zbuffer(point, depth, (height, width), 0)[0]
+        written = torch.isfinite(splat).nonzero().tolist()
+        assert written == ([] if pixel is None else [[pixel[1], pixel[0]]]), (u, v, written)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_points_go_to_their_own_pixel_far_from_the_origin(dtype):
+    """u + 0.5 in bfloat16 (float16) rounds a whole u above 128 (1024) half to even: the nearest
+    pixel is found in float32."""
+    from facenormals.render import splat_zbuffer
+
+    size = 2048 if dtype == torch.float16 else 256
+    column = size // 2 + 1  # odd, so that column + 0.5 rounds up to the even neighbour
+    point, depth = torch.tensor([[[column, 1.0]]], dtype=dtype), torch.tensor([[2.0]], dtype=dtype)
+    splat = splat_zbuffer(point, depth, (3, size), 0)
+    assert torch.isfinite(splat[0]).nonzero().tolist() == [[1, column]]

@@ -18,6 +18,8 @@ import math
 import torch
 from torch import Tensor
 
+from torch._C._functorch import is_functorch_wrapped_tensor  # private; what torch.func itself asks
+
 from facenormals.core.check import check_finite, check_floating, check_shape
 
 __all__ = ["euler_rotation_derivatives", "euler_to_rotation_matrix", "rotation_matrix_to_euler"]
@@ -119,6 +121,11 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
     roll is 0 and ``yaw = atan2(sign(-R[1,2]) R[0,1], R[0,0])``, so that the angles still give back
     ``R`` (to about ``sqrt(eps)``).
 
+    The matrices must be rotations: orthonormal, :math:`\max |R^T R - I| \le 10^{-3}` (or 8 times
+    the dtype's resolution where that is larger: float16, bfloat16), with determinant +1. That
+    admits float32 rotations from OpenCV (``cv2.Rodrigues``) or an SVD, about 1e-6 off, and refuses
+    reflections and scaled matrices, whose angles would not give them back.
+
     Args:
         rotation: rotation matrices.
 
@@ -126,7 +133,8 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
         Angles in radians.
 
     Raises:
-        ValueError: if ``rotation`` is not a floating tensor of shape ``(B, 3, 3)`` with finite values.
+        ValueError: if ``rotation`` is not a floating tensor of shape ``(B, 3, 3)`` with finite values,
+            or holds a matrix that is not a rotation (see above).
 
     Shape:
         - rotation: :math:`(B, 3, 3)`
@@ -140,7 +148,26 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
     check_shape(rotation, ["B", 3, 3], "rotation")
     check_floating(rotation, "rotation")
     check_finite(rotation, "rotation")
+    _check_rotation(rotation)
     return _euler(rotation)
+
+
+def _check_rotation(rotation: Tensor) -> None:
+    """Raise ``ValueError`` unless every matrix of ``rotation`` ``(B, 3, 3)`` (finite) is a rotation, to
+    the tolerance of :func:`rotation_matrix_to_euler`. Like ``check_finite`` it reads values, so it is
+    skipped while ``torch.compile`` traces and for tensors that ``torch.func`` wraps."""
+    if rotation.shape[0] == 0 or torch.compiler.is_compiling() or is_functorch_wrapped_tensor(rotation):
+        return
+    work = rotation.detach().to(torch.promote_types(rotation.dtype, torch.float32))
+    eye = torch.eye(3, dtype=work.dtype, device=work.device)
+    error = (work.transpose(1, 2) @ work - eye).abs().amax((1, 2))
+    det = torch.linalg.det(work)
+    tolerance = max(1e-3, 8 * torch.finfo(rotation.dtype).eps)
+    bad = (error > tolerance) | (det <= 0)
+    if bool(bad.any()):
+        raise ValueError(f"rotation: expected rotation matrices, orthonormal with det +1 (max |R^T R - I| <= "
+                         f"{tolerance:g}), got {int(bad.sum())} of {rotation.shape[0]} that are not (largest "
+                         f"|R^T R - I| {float(error.max()):.3g}, smallest det {float(det.min()):.3g})")
 
 
 def _euler(rotation: Tensor) -> Tensor:

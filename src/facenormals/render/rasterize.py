@@ -46,6 +46,13 @@ class Fragments:
         return self.face_index >= 0
 
 
+# Depths within this relative difference of a pixel's nearest count as ties (then the triangle listed
+# first wins): the depth at a pixel centre is computed from the triangle's corners in their listed
+# order, so the same surface seen through two triangles (a triangle listed twice with its corners in
+# another order, a shared edge) comes out a few hundred float64 ulps apart, and 2^-40 (4096 ulps,
+# ~1e-12) still covers slivers of aspect ratio 1000; it is a picometre at a metre.
+_TIE = 2.0**-40
+
 # Triangles are tested against a grid of pixel centres the size of their bounding box, rounded up
 # to powers of two per axis and processed in chunks of at most this many (triangle, pixel) cells:
 # the temporaries then stay at a few hundred MB however long and thin the triangles are.
@@ -168,7 +175,10 @@ def rasterize_triangles(
 
     A pixel centre ``(u, v)`` (integers, OpenCV convention) is covered by a triangle when its
     screen-space barycentrics are all ≥ 0 (up to 1e-9). Among covering triangles the nearest wins,
-    and of those at exactly the same depth the one listed first in ``faces``.
+    and of those at the same depth the one listed first in ``faces``: depths within a relative
+    :math:`2^{-40}` (about 1e-12) of the nearest count as the same, since the rounding of a
+    triangle's depth depends on the order of its corners, so that e.g. a triangle listed twice,
+    whatever the order of its corners, is drawn by its first copy on every pixel.
     Barycentrics are made perspective-correct by weighting with :math:`1/z`.
 
     Args:
@@ -201,12 +211,13 @@ def rasterize_triangles(
     for pix, face, z, bary in _covered_pixels(pixels, depth, faces, batch, height, width, cull_backfaces, near, True):
         zbuf.scatter_reduce_(0, pix, z, reduce="amin")
         candidates.append((pix, face, z, bary))
-    # Of the triangles at the nearest depth the one with the lowest index wins (exact ties occur on
-    # shared edges and coplanar meshes): one winner per pixel, so the writes below never collide.
+    # Of the triangles at the nearest depth, up to the relative _TIE (the same surface: shared edges,
+    # duplicated or coplanar triangles, whose depths differ by rounding), the one with the lowest
+    # index wins: one winner per pixel, so the writes below never collide.
     none = faces.shape[0]
     face_index = torch.full((num_pixels,), none, dtype=torch.long, device=device)
     for i, (pix, face, z, bary) in enumerate(candidates):
-        nearest = z == zbuf[pix]
+        nearest = z <= zbuf[pix] * (1.0 + _TIE)  # the z-buffer is finite and > 0 at covered pixels
         candidates[i] = (pix[nearest], face[nearest], bary[nearest])
         face_index.scatter_reduce_(0, candidates[i][0], candidates[i][1], reduce="amin")
     barycentric = torch.zeros(num_pixels, 3, dtype=work, device=device)

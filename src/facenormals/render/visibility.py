@@ -74,8 +74,12 @@ def visible_vertices(
 
 
 def _nearest_pixel(pixels: Tensor) -> tuple[Tensor, Tensor]:
-    """The nearest pixel centre's ``(u, v)``; a point that projects nowhere (NaN) goes to ``-1``, outside."""
-    rounded = torch.round(pixels).nan_to_num(nan=-1.0)
+    """The pixel ``(u, v)`` whose square ``[u - 0.5, u + 0.5) x [v - 0.5, v + 0.5)`` holds each point,
+    the same rule on every edge of the image (``torch.round`` rounds half to even: ``W - 0.5`` fell
+    inside for odd ``W`` only); a point that projects nowhere (NaN) goes to ``-1``, outside. In at
+    least float32: ``x + 0.5`` in float16 (bfloat16) rounds whole numbers above 1024 (128) up."""
+    work = pixels.to(torch.promote_types(pixels.dtype, torch.float32))
+    rounded = torch.floor(work + 0.5).nan_to_num(nan=-1.0)
     return rounded[..., 0], rounded[..., 1]
 
 
@@ -113,6 +117,10 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     behind the z-buffer at their position: the occlusion half of :func:`visible_vertices`, without
     its front-facing test (e.g. for landmarks, whose surface may face away at the outline).
 
+    A point is inside the image when the square of a pixel holds it: pixel ``(u, v)`` (centre at
+    integer coordinates) covers ``[u - 0.5, u + 0.5) x [v - 0.5, v + 0.5)``, so the image spans
+    ``[-0.5, W - 0.5) x [-0.5, H - 0.5)``.
+
     The z-buffer is read at each point's sub-pixel position: its inverse depth is interpolated
     bilinearly between the four pixel centres around the point, which is exact on a plane (whose
     :math:`1/z` is affine in the pixel coordinates), so a sloped surface does not hide its own
@@ -122,11 +130,17 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     Args:
         pixels: projected points ``(u, v)``.
         depth: their camera-frame depths, finite where the pixels are.
-        zbuffer: a depth map (``inf`` on background), e.g. :func:`~facenormals.render.rasterize_depth`.
+        zbuffer: a depth map, depths > 0 and ``inf`` on background, e.g.
+            :func:`~facenormals.render.rasterize_depth`; 0 or negative values (OpenGL's and
+            pyrender's background is 0) are an error, they would hide every point behind them.
         tolerance: depth slack in mm, for the surface's curvature between pixel centres.
 
     Returns:
         ``(B, N)`` bool; False for points that project nowhere (NaN pixels).
+
+    Raises:
+        ValueError: for mismatched shapes, non-floating inputs, a NaN or non-positive z-buffer value,
+            a non-finite depth at a finite pixel, or a negative or NaN ``tolerance``.
 
     Shape:
         - pixels: :math:`(B, N, 2)`; depth: :math:`(B, N)`; zbuffer: :math:`(B, H, W)`
@@ -143,6 +157,11 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     for name, x in (("pixels", pixels), ("depth", depth), ("zbuffer", zbuffer)):
         check_floating(x, name)
     check_finite(zbuffer, "zbuffer", allow_inf=True)  # inf is background, NaN would hide every point
+    # 0 (OpenGL's and pyrender's background) or a negative depth would hide every point behind it
+    if zbuffer.numel() and not torch.compiler.is_compiling() and not bool(zbuffer.amin() > 0):
+        bad = int((zbuffer <= 0).sum())
+        raise ValueError(f"zbuffer: expected depths > 0 with inf on background, got {bad} values <= 0 "
+                         f"(minimum {float(zbuffer.amin()):g})")
     # a NaN depth would read as hidden, silently; a point that projects nowhere may carry anything
     check_finite(depth.masked_fill(~torch.isfinite(pixels).all(-1), 0.0), "depth")
     tolerance = check_nonnegative(tolerance, "tolerance")  # NaN would hide every point
@@ -165,6 +184,15 @@ def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], ra
     :func:`visible_vertices` except within a pixel or two of depth discontinuities, at a fraction of
     the cost. Background is ``inf``.
 
+    A vertex goes to the pixel whose square holds it, as in :func:`unoccluded_points`: pixel
+    ``(u, v)`` covers ``[u - 0.5, u + 0.5) x [v - 0.5, v + 0.5)``. Vertices outside the image, at
+    depth ``<= 0`` (behind the camera) or that project nowhere (NaN or infinite pixels) are left out;
+    a vertex at a finite pixel needs a finite depth, as in :func:`unoccluded_points`.
+
+    Raises:
+        ValueError: for mismatched shapes or dtypes, a bad ``image_size`` or ``radius``, or a NaN or
+            infinite depth at a finite pixel.
+
     Shape:
         - pixels: :math:`(B, N, 2)`; depth: :math:`(B, N)` → :math:`(B, H, W)`
 
@@ -180,12 +208,15 @@ def splat_zbuffer(pixels: Tensor, depth: Tensor, image_size: tuple[int, int], ra
     check_same_dtype_device(pixels, "pixels", depth=depth)
     height, width = check_image_size(image_size)
     radius = check_integer(radius, "radius", minimum=0)
-    lost = torch.isnan(depth) & torch.isfinite(pixels).all(-1)  # a NaN pixel projects nowhere; a NaN depth is a bug
+    # a NaN pixel projects nowhere; a NaN or infinite depth at a finite pixel is a bug (unoccluded_points
+    # refuses it too)
+    lost = ~torch.isfinite(depth) & torch.isfinite(pixels).all(-1)
     if bool(lost.any()):
-        raise ValueError(f"depth: expected a depth for every finite pixel, got {int(lost.sum())} NaN")
+        raise ValueError(f"depth: expected a finite depth for every finite pixel, got {int(lost.sum())} NaN or "
+                         f"infinite")
     batch = dims["B"]
     u, v = _nearest_pixel(pixels)
-    ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0) & torch.isfinite(depth)
+    ok = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1) & (depth > 0)  # finite where u, v are
     index = _flat_index(u, v, height, width)
     values = torch.where(ok, depth, torch.full_like(depth, float("inf")))
     zbuf = torch.full((batch, height * width), float("inf"), dtype=depth.dtype, device=depth.device)
