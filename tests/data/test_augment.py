@@ -52,3 +52,28 @@ def test_numpy_images_are_refused():
 
     with pytest.raises(ValueError, match="images: expected a torch.Tensor, got ndarray"):
         PhotoAugmentation()(np.zeros((1, 3, 8, 8), np.float32))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(blur_sigma=(0.5, float("inf"))), r"blur_sigma: expected a finite number, got inf"),  # was OverflowError
+    (dict(blur_sigma=(float("nan"), 1.0)), r"blur_sigma: expected a finite number, got nan"),
+    (dict(blur_sigma=1.0), r"blur_sigma: expected a \(low, high\) pair of numbers, got float 1.0"),  # was TypeError
+    (dict(blur_sigma=(0.5, 1.0, 2.0)), r"blur_sigma: expected a \(low, high\) pair"),
+    (dict(blur_sigma=(0.5, "1")), r"blur_sigma: expected a real number, got str '1'"),
+    (dict(blur_sigma=(0.5, 1e4)), r"blur_sigma: expected 0 < low <= high <= 10 pixels"),  # a 60001-wide kernel
+    (dict(blur_probability="0.5"), r"blur_probability: expected a real number, got str '0.5'"),  # was TypeError
+    (dict(noise_probability=True), r"noise_probability: expected a real number, got bool"),
+    (dict(noise_probability=float("nan")), r"noise_probability: expected a finite number, got nan"),
+    (dict(noise_std=(0.0, float("inf"))), r"noise_std: expected a finite number, got inf"),  # images became 0/1
+    (dict(noise_std=(0.0, 2.0)), r"noise_std: expected 0 <= low <= high <= 1"),
+    (dict(noise_std=None), r"noise_std: expected a \(low, high\) pair of numbers, got NoneType"),
+])
+def test_non_finite_huge_or_mistyped_ranges_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PhotoAugmentation(**kwargs)
+
+
+def test_the_largest_ranges_and_lists_are_accepted():
+    aug = PhotoAugmentation(blur_probability=1, blur_sigma=[10, 10], noise_probability=0, noise_std=[0, 1])
+    assert aug.blur_sigma == (10.0, 10.0) and aug.noise_std == (0.0, 1.0)
+    assert aug(torch.rand(1, 3, 64, 64)).shape == (1, 3, 64, 64)

@@ -462,7 +462,7 @@ def test_a_manifest_with_bad_values_is_named(dataset_root, tmp_path, key, value,
 def test_a_manifest_whose_image_size_disagrees_with_the_samples_is_named(dataset_root, tmp_path):
     root = _copy_with_manifest(dataset_root, tmp_path, image_size=64)
     with pytest.raises(ValueError, match=r"shard_00000.npz: corrupt shard, cannot read sample 0 .*member image/0000 "
-                                         r"has shape \(3, 128, 128\), expected \(3, 64, 64\)"):
+                                         r"has shape \(128, 128, 3\), expected \(64, 64, 3\)"):
         SyntheticHeadDataset(root)[0]
 
 
@@ -534,3 +534,67 @@ def test_a_bad_sigma_is_refused_by_the_constructor(tmp_path, sigma):
     """An infinite sigma was accepted and failed on every item, inside DataLoader workers."""
     with pytest.raises(ValueError, match="sigma"):
         SyntheticHeadDataset(tmp_path, sigma=sigma)
+
+
+def _with_members(dataset_root, tmp_path, changes):
+    """A copy of the dataset whose shard_00001.npz has its members ``changes`` (name: function of the stored array)."""
+    import shutil
+    import zipfile
+
+    root = tmp_path / "members"
+    shutil.copytree(dataset_root, root)
+    with zipfile.ZipFile(dataset_root / "shard_00001.npz") as old, \
+            zipfile.ZipFile(root / "shard_00001.npz", "w") as new:
+        for member in old.namelist():
+            name = member[:-len(".npy")]
+            if name in changes:
+                with new.open(member, "w") as handle:
+                    np.lib.format.write_array(handle, changes[name](np.load(old.open(member))))
+            else:
+                new.writestr(member, old.read(member))
+    return root
+
+
+@pytest.mark.parametrize("name, change, match", [
+    ("normals/0001", lambda a: np.full(a.shape, np.nan, np.float32), r"member normals/0001 has dtype float32, expected int16"),
+    ("normals/0001", lambda a: a.astype(np.int32) * 3, r"member normals/0001 has dtype int32, expected int16"),
+    ("image/0001", lambda a: a.astype(np.float64) * 1000, r"member image/0001 has dtype float64, expected uint8"),
+    ("segmentation/0001", lambda a: a.astype(np.int64), r"member segmentation/0001 has dtype int64, expected uint8"),
+    ("segmentation/0001", lambda a: a[:64], r"member segmentation/0001 has shape \(64, 128\), expected \(128, 128\)"),
+    ("landmark_visible", lambda a: a.astype(np.float32), r"table 'landmark_visible' has dtype float32, expected bool"),
+    ("landmarks", lambda a: a[:, :20], r"table 'landmarks' has shape \(4, 20, 2\), expected \(n=4, L=\d+, 2\)"),
+    ("landmarks", lambda a: a[:3], r"table 'landmarks' has shape \(3, \d+, 2\), expected \(n=4, L=\d+, 2\)"),
+    ("shape_coeffs", lambda a: a[:, :1], r"table 'shape_coeffs' has shape \(4, 1\), expected \(n=4, K=\d+\)"),
+    ("rotation", lambda a: a.astype(np.float64), r"table 'rotation' has dtype float64, expected float32"),
+    ("index", lambda a: a.astype(np.float64), r"table 'index' has dtype float64, expected int64"),
+])
+def test_a_shard_with_members_of_the_wrong_type_or_shape_is_named(dataset_root, tmp_path, name, change, match):
+    """NaN float normals, int32 normals 3x too long and a float image of 1000 were served silently;
+    a float landmark_visible or a short landmarks table failed without naming the file (or with an IndexError)."""
+    root = _with_members(dataset_root, tmp_path, {name: change})
+    dataset = SyntheticHeadDataset(root)
+    assert int(dataset[0]["index"]) == 0  # other shards still read
+    with pytest.raises(ValueError, match=r"shard_00001.npz: corrupt shard, cannot read sample 1 .*" + match):
+        dataset[5]
+    dataset.close()
+    without_maps = SyntheticHeadDataset(root, with_landmark_maps=False)  # the same without rasterising
+    with pytest.raises(ValueError, match=r"shard_00001.npz: corrupt shard, cannot read sample 1 .*" + match):
+        without_maps[5]
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("num_shape", "100", r"model.num_shape: expected an integer >= 0, got '100'"),
+    ("num_expressions", -1, r"model.num_expressions: expected an integer >= 0, got -1"),
+    ("landmark_names", "nose", r"model.landmark_names: expected a list, got str"),
+])
+def test_a_manifest_with_bad_model_sizes_is_named(dataset_root, tmp_path, key, value, match):
+    manifest = json.loads((dataset_root / "manifest.json").read_text())
+    root = _copy_with_manifest(dataset_root, tmp_path, model={**manifest["model"], key: value})
+    with pytest.raises(ValueError, match="manifest.json: " + match):
+        SyntheticHeadDataset(root)
+
+
+def test_a_manifest_whose_model_is_not_an_object_is_named(dataset_root, tmp_path):
+    root = _copy_with_manifest(dataset_root, tmp_path, model="builtin")
+    with pytest.raises(ValueError, match="manifest.json: model: expected a JSON object, got str"):
+        SyntheticHeadDataset(root)

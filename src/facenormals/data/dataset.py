@@ -14,8 +14,8 @@ from torch.utils.data import Dataset
 
 from facenormals.core.check import check_positive
 from facenormals.data.landmark_maps import DEFAULT_SIGMA, landmark_maps
-from facenormals.data.shards import (SHARD_ARRAYS, read_manifest, read_member, shard_is_complete, shard_name,
-                                     shard_range)
+from facenormals.data.shards import (MANIFEST, SHARD_ARRAYS, read_manifest, read_member, shard_is_complete,
+                                     shard_name, shard_range)
 
 __all__ = ["SyntheticHeadDataset"]
 
@@ -75,6 +75,7 @@ class SyntheticHeadDataset(Dataset):
         self.shard_size = int(self.manifest["shard_size"])
         self.image_size = int(self.manifest["image_size"])
         self.normal_scale = float(self.manifest["normal_scale"])
+        self._sizes = _model_sizes(self.manifest, self.root / MANIFEST)
         num_shards = -(-self.count // self.shard_size)
         present = [k for k in range(num_shards) if (self.root / shard_name(k)).is_file()]
         if allow_missing:  # a shard of an extension being written, or a stale one, would fail mid-epoch
@@ -109,18 +110,22 @@ class SyntheticHeadDataset(Dataset):
         if shard not in self._archives:
             archive = zipfile.ZipFile(self.root / shard_name(shard))
             self._archives[shard] = archive
-            self._tables[shard] = {name: read_member(archive, name) for name in SHARD_ARRAYS}
-            for name, table in self._tables[shard].items():  # a wrong target would train silently
-                if table.dtype.kind == "f" and not np.isfinite(table).all():
-                    raise ValueError(f"table {name!r} holds NaN or infinite values")
+            tables = {name: read_member(archive, name) for name in SHARD_ARRAYS}
+            index = tables["index"]
+            _check_table("index", index, np.int64, ("n",))
             expected = shard_range(shard, self.count, self.shard_size)
-            index = self._tables[shard]["index"]
             if not np.array_equal(index, np.arange(expected.start, expected.stop)):
                 self.close()
                 raise _StaleShard(f"{self.root / shard_name(shard)}: stale shard, holds samples "
                                   f"{int(index[0]) if len(index) else '-'}..{int(index[-1]) if len(index) else '-'} but "
                                   f"the manifest's count {self.count} asks for {expected.start}..{expected.stop - 1}; "
                                   "run `facenormals synth` for this folder on every rank to finish it")
+            sizes = {"n": len(expected), **self._sizes}
+            for name, (dtype, shape) in _TABLES.items():  # what write_shard writes (SynthBatch's dtypes)
+                _check_table(name, tables[name], dtype, shape, sizes)
+                if tables[name].dtype.kind == "f" and not np.isfinite(tables[name]).all():  # would train silently
+                    raise ValueError(f"table {name!r} holds NaN or infinite values")
+            self._tables[shard] = tables
         return self._archives[shard], self._tables[shard]
 
     def close(self) -> None:
@@ -133,17 +138,22 @@ class SyntheticHeadDataset(Dataset):
         if not -len(self) <= item < len(self):
             raise IndexError(f"index {item} is out of range for {len(self)} samples")
         shard, i = self._items[item]
+        S = self.image_size
         try:
             archive, table = self._shard(shard)
-            image = torch.from_numpy(read_member(archive, f"image/{i:04d}")).permute(2, 0, 1).float() / 255.0
-            normals = torch.from_numpy(read_member(archive, f"normals/{i:04d}").astype(np.float32) / self.normal_scale)
-            segmentation = torch.from_numpy(read_member(archive, f"segmentation/{i:04d}"))
-            S = self.image_size
-            for name, array, shape in (("image", image, (3, S, S)), ("normals", normals, (3, S, S)),
-                                       ("segmentation", segmentation, (S, S))):
-                if tuple(array.shape) != shape:
-                    raise ValueError(f"member {name}/{i:04d} has shape {tuple(array.shape)}, expected {shape} "
+            members = {}
+            for name, dtype, shape in (("image", np.uint8, (S, S, 3)), ("normals", np.int16, (3, S, S)),
+                                       ("segmentation", np.uint8, (S, S))):  # as write_shard stores them
+                array = members[name] = read_member(archive, f"{name}/{i:04d}")
+                if array.dtype != dtype:  # int16 bounds the normals; a float member could hold NaN
+                    raise ValueError(f"member {name}/{i:04d} has dtype {array.dtype}, expected {np.dtype(dtype)}")
+                if array.shape != shape:
+                    raise ValueError(f"member {name}/{i:04d} has shape {array.shape}, expected {shape} "
                                      f"from the manifest's image_size {S}")
+            sample = {name: torch.from_numpy(np.array(table[name][i])) for name in SHARD_ARRAYS}
+            if self.with_landmark_maps:
+                sample["landmark_maps"] = landmark_maps(sample["landmarks"][None], sample["landmark_visible"][None],
+                                                        (S, S), self.sigma)[0]
         except _StaleShard:
             raise
         except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError) as error:
@@ -154,15 +164,58 @@ class SyntheticHeadDataset(Dataset):
             raise ValueError(f"{self.root / shard_name(shard)}: corrupt shard, cannot read sample {i} "
                              f"({type(error).__name__}: {error}); delete the file and run `facenormals synth` "
                              "with the same arguments to write it again") from None
-        sample = {name: torch.from_numpy(np.array(table[name][i])) for name in SHARD_ARRAYS}
-        size = (self.image_size, self.image_size)
-        if self.with_landmark_maps:
-            sample["landmark_maps"] = landmark_maps(sample["landmarks"][None], sample["landmark_visible"][None], size,
-                                                    self.sigma)[0]
+        image = torch.from_numpy(members["image"]).permute(2, 0, 1).float() / 255.0
+        normals = torch.from_numpy(members["normals"].astype(np.float32) / self.normal_scale)
         if self.augment is not None:
             image = self.augment(image)
         sample["image"] = image
         sample["normals"] = normals
         sample["foreground"] = (normals.square().sum(0, keepdim=True) > 0.25)
-        sample["segmentation"] = segmentation
+        sample["segmentation"] = torch.from_numpy(members["segmentation"])
         return sample
+
+
+#: dtype and shape of the whole-shard tables (besides ``index``): ``n`` samples, ``L`` landmarks,
+#: ``K`` shape and ``E`` expression coefficients (the sizes of the manifest's model).
+_TABLES = {
+    "landmarks": (np.float32, ("n", "L", 2)),
+    "landmark_visible": (np.bool_, ("n", "L")),
+    "shape_coeffs": (np.float32, ("n", "K")),
+    "expression_coeffs": (np.float32, ("n", "E")),
+    "angles": (np.float32, ("n", 3)),
+    "rotation": (np.float32, ("n", 3, 3)),
+    "translation": (np.float32, ("n", 3)),
+    "intrinsics": (np.float32, ("n", 3)),
+}
+
+
+def _model_sizes(manifest: dict, path: Path) -> dict[str, int]:
+    """``L``, ``K`` and ``E`` of the manifest's model (those it records) for the shard table checks."""
+    model = manifest["model"]
+    if not isinstance(model, dict):
+        raise ValueError(f"{path}: model: expected a JSON object, got {type(model).__name__}")
+    sizes = {}
+    for key, dim in (("num_shape", "K"), ("num_expressions", "E")):
+        if key in model:
+            value = model[key]
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{path}: model.{key}: expected an integer >= 0, got {value!r}")
+            sizes[dim] = value
+    if "landmark_names" in model:
+        if not isinstance(model["landmark_names"], list):
+            raise ValueError(f"{path}: model.landmark_names: expected a list, got "
+                             f"{type(model['landmark_names']).__name__}")
+        sizes["L"] = len(model["landmark_names"])
+    return sizes
+
+
+def _check_table(name: str, table: np.ndarray, dtype: type, shape: tuple, sizes: dict[str, int] | None = None) -> None:
+    """Raise ``ValueError`` unless the shard table ``name`` has ``dtype`` and ``shape`` (a dimension
+    named in ``sizes`` has that size, another named one any size)."""
+    if table.dtype != dtype:
+        raise ValueError(f"table {name!r} has dtype {table.dtype}, expected {np.dtype(dtype)}")
+    sizes = sizes or {}
+    if table.ndim != len(shape) or any(got != sizes.get(want, got) if isinstance(want, str) else got != want
+                                       for got, want in zip(table.shape, shape)):
+        expected = "(" + ", ".join(f"{d}={sizes[d]}" if d in sizes else str(d) for d in shape) + ")"
+        raise ValueError(f"table {name!r} has shape {table.shape}, expected {expected}")

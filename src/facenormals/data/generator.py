@@ -116,6 +116,12 @@ class SynthConfig:
 
         for name, minimum in (("image_size", 16), ("supersample", 1), ("max_expressions", 0)):
             object.__setattr__(self, name, check_integer(getattr(self, name), name, minimum))  # numpy ints -> int
+        for name in ("identity_scale", "expression_probability", "yaw", "pitch", "roll", "principal_jitter",
+                     "hair_probability", "cap_probability", "occluder_probability", "photo_probability"):
+            value = getattr(self, name)  # a type before the comparisons below: "90" or None raised TypeError
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
+                raise ValueError(f"{name}: expected a real number, got {type(value).__name__} {value!r}")
+            object.__setattr__(self, name, float(value))  # numpy floats -> float (JSON in the manifest)
         if self.supersample % 2 == 0:
             raise ValueError(f"supersample: expected an odd factor >= 1, got {self.supersample}")
         if not (math.isfinite(self.identity_scale) and self.identity_scale >= 0):
@@ -131,6 +137,7 @@ class SynthConfig:
             if (not isinstance(pair, (tuple, list)) or len(pair) != 2
                     or any(isinstance(v, (bool, np.bool_)) or not isinstance(v, Real) for v in pair)):
                 raise ValueError(f"{name}: expected a (low, high) pair of numbers, got {pair!r}")
+            object.__setattr__(self, name, tuple(pair))  # a list would leave the frozen config unhashable
         lo, hi = self.fill
         if not 0.0 < lo <= hi <= 1.5:
             raise ValueError(f"fill: expected 0 < low <= high <= 1.5, got {self.fill}")
@@ -143,6 +150,12 @@ class SynthConfig:
         if isinstance(self.background_folders, (str, Path)):
             raise ValueError(f"background_folders: expected a tuple of folders, got the single "
                              f"{type(self.background_folders).__name__} {str(self.background_folders)!r}")
+        if (not isinstance(self.background_folders, (tuple, list))
+                or not all(isinstance(f, (str, Path)) for f in self.background_folders)):
+            raise ValueError(f"background_folders: expected a tuple of folders (str or Path), got "
+                             f"{self.background_folders!r}")
+        # a tuple of str: hashable, as the frozen config promises, and JSON for the manifest
+        object.__setattr__(self, "background_folders", tuple(str(f) for f in self.background_folders))
         # the principal point stays inside the image: the framing relies on it
         limit = 64.0 * (self.image_size - 1) / self.image_size
         if not 0.0 <= self.principal_jitter < limit:
