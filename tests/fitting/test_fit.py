@@ -374,3 +374,29 @@ def test_flags_must_be_booleans(model, head):
     for name in ("fit_intrinsics", "fit_expression"):
         with pytest.raises(ValueError, match=f"{name}: expected True or False, got 'no'"):
             fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, **{name: "no"})
+
+
+def test_an_unconverged_pre_alignment_is_warned_about_by_view(model, head, monkeypatch):
+    """fit_head started from a pre-aligned pose whose solve ran out of iterations without a word (its
+    own status then said converged, e.g. in a wrong minimum); it now warns, naming the view."""
+    import warnings
+
+    import facenormals.fitting.fit as fit_module
+    from facenormals.optim import LMStatus
+
+    obs = render_oracle_views(model, head, [-30.0, 30.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # converged pre-alignments: no warning
+        fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, rounds=1)
+    real = fit_module.prealign_pose
+
+    def second_view_stuck(*args, **kwargs):
+        pose = real(*args, **kwargs)
+        pose.status[1] = LMStatus.MAX_ITERATIONS
+        return pose
+
+    monkeypatch.setattr(fit_module, "prealign_pose", second_view_stuck)
+    with pytest.warns(RuntimeWarning, match=r"the landmark pre-alignment did not converge for view 1 \(\d.* px, "
+                                            r"MAX_ITERATIONS\)"):
+        result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, rounds=1)
+    assert torch.isfinite(result.vertices).all()

@@ -198,7 +198,8 @@ def test_pnp_starts_of_a_batch_are_those_of_each_view(monkeypatch):
     starts, found = _pnp_starts(points.expand(3, -1, -1), uv, mask, K)
     assert found.tolist() == [True, True, True]
     torch.testing.assert_close(starts[:, :3], angles, rtol=0, atol=1e-6)
-    torch.testing.assert_close(starts[:, 3:], t[:, 0], rtol=0, atol=1e-3)
+    # the LM's starts carry the camera-frame translation T = R t
+    torch.testing.assert_close(starts[:, 3:], (R @ t[:, 0, :, None])[..., 0], rtol=0, atol=1e-3)
     for v in range(3):
         alone, _ = _pnp_starts(points[None], uv[v:v + 1], mask[v:v + 1], K[v:v + 1])
         torch.testing.assert_close(alone[0], starts[v], rtol=0, atol=0)
@@ -460,3 +461,25 @@ def test_facing_cosine_checks_its_inputs():
         facing_cosine(p, n, R, t, torch.ones(1, 2))
     with pytest.raises(ValueError, match="normals: expected .*float64"):
         facing_cosine(p, n.double(), R, t)
+
+
+@pytest.mark.parametrize("focal", [3e4, 2e5, 2e6])
+def test_long_focal_lengths_reach_the_pose(focal):
+    """Regression: with t in the model frame a yaw step swings the head sideways by |t| sin, and at
+    long focal lengths (the head metres away, near-orthographic) the LM crawled along that valley:
+    the yaw stopped 3-18° short (at 2e6 px it stayed at its start), reported as converged. The LM
+    now moves the camera-frame translation; the pose and t come back exact for exact points."""
+    model = builtin_head_model(dtype=torch.float64)
+    points = model.mean[model.landmark_indices][None]
+    angles = torch.tensor([[0.05, math.radians(5.0), math.radians(35.0)]], dtype=torch.float64)
+    R = euler_to_rotation_matrix(angles)
+    depth = focal * 650.0 / 400.0  # the head as large in the image as at f = 400 px and 650 mm
+    t = torch.tensor([[3.0, -5.0, depth]], dtype=torch.float64) @ R[0]
+    K = torch.tensor([[focal, 63.5, 63.5]], dtype=torch.float64)
+    uv, _ = project_points(points, R, t, K)
+    for robust_scale in (None, 3.0):
+        for init in ("pnp", "multistart"):
+            est = prealign_pose(uv, points[0], K, init=init, robust_scale=robust_scale)
+            assert abs(math.degrees(float(est.angles[0, 2] - angles[0, 2]))) < 0.05, (init, robust_scale)
+            assert est.rms_px[0] < 0.05
+            torch.testing.assert_close(est.translation, t, rtol=1e-4, atol=0.0)

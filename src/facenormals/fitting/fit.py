@@ -9,6 +9,7 @@ shape; each view has its own pose and intrinsics.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from numbers import Real
 from pathlib import Path
@@ -237,6 +238,20 @@ def _check_normal_axes(normal_maps: Tensor, foreground: Tensor, model: Morphable
         "down, docs/conventions.md), or do the landmarks not belong to this map?")
 
 
+def _warn_unconverged_prealignment(status: Tensor, rms_px: Tensor) -> None:
+    """Warn, naming the views, where the landmark pre-alignment stopped without converging: the fit
+    starts from that pose and may end in a wrong minimum while its own status says converged."""
+    stuck = (status != LMStatus.CONVERGED).nonzero().tolist()
+    if stuck:
+        B = status.shape[0]
+        views = ", ".join(f"view {v}{f' of subject {b}' if B > 1 else ''} ({float(rms_px[b, v]):.2g} px, "
+                          f"{LMStatus(int(status[b, v])).name})" for b, v in stuck)
+        warnings.warn(f"fit_head: the landmark pre-alignment did not converge for {views}; the fit starts from "
+                      "that pose and may end in a wrong one (a near-orthographic camera, f above ~10^4 px, or "
+                      "inconsistent landmarks): check FitResult.prealignment_rms_px and landmark_rms_px, or pass "
+                      "initial_pose", RuntimeWarning, stacklevel=3)
+
+
 def fit_head(
     normal_maps: Tensor,
     landmarks: Tensor,
@@ -399,6 +414,7 @@ def fit_head(
                              model_normals=model.landmark_normals())
         angles, translation = pose.angles.reshape(B, V, 3), pose.translation.reshape(B, V, 3)
         pre_rms = pose.rms_px.reshape(B, V)
+        _warn_unconverged_prealignment(pose.status.reshape(B, V), pre_rms)
     else:
         angles, translation = (_as_views(p, n, [3], views).to(dtype) for p, n in zip(initial_pose, ("angles", "translation")))
         check_finite(angles, "initial_pose angles")

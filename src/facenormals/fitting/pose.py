@@ -108,21 +108,26 @@ def _pose_jacobian(x: Tensor, points: Tensor, intrinsics: Tensor, mask: Tensor |
     return _jacobian_at(x, R, camera, _safe_depth(camera[..., 2]), intrinsics, mask)
 
 
-def _jacobian_at(x: Tensor, R: Tensor, camera: Tensor, z: Tensor, intrinsics: Tensor, mask: Tensor | None) -> Tensor:
+def _jacobian_at(x: Tensor, R: Tensor, camera: Tensor, z: Tensor, intrinsics: Tensor, mask: Tensor | None,
+                 arm: Tensor | None = None) -> Tensor:
     r"""The pose Jacobian ``(B, 2L, 6)`` from the camera points ``camera`` of ``x`` and their safe depths ``z``.
 
     The Euler rotations' derivatives (``euler_rotation_derivatives``) move a camera point by
     :math:`\omega_j \times X_c` about the axes :math:`\omega = (R e_z, R_y e_x, e_y)` (roll, pitch,
-    yaw), and :math:`\partial X_c / \partial t = R`."""
-    cx, cy, cz = camera.unbind(-1)
+    yaw), and :math:`\partial X_c / \partial t = R`. With ``arm`` (``R p``, for the camera-frame
+    translation :math:`T` of :math:`X_c = R p + T`), the rotations move :math:`\omega_j \times R p`
+    and :math:`\partial X_c / \partial T = I`."""
+    lever = camera if arm is None else arm
+    cx, cy, cz = lever.unbind(-1)
     zero = torch.zeros_like(cx)
-    d_roll = torch.linalg.cross(R[:, None, :, 2].expand_as(camera), camera)
+    d_roll = torch.linalg.cross(R[:, None, :, 2].expand_as(lever), lever)
     cos_yaw, sin_yaw = torch.cos(x[:, 2:3]), torch.sin(x[:, 2:3])
     d_pitch = torch.stack([sin_yaw * cy, -sin_yaw * cx - cos_yaw * cz, cos_yaw * cy], dim=-1)
     d_yaw = torch.stack([cz, zero, -cx], dim=-1)
     # (B, L, 3, 6): d X_c[k] / d x[j]
-    d_camera = torch.cat([torch.stack([d_roll, d_pitch, d_yaw], dim=-1), R[:, None].expand(-1, cx.shape[1], 3, 3)],
-                         dim=-1)
+    d_translation = R if arm is None else torch.eye(3, dtype=R.dtype, device=R.device).expand_as(R)
+    d_camera = torch.cat([torch.stack([d_roll, d_pitch, d_yaw], dim=-1),
+                          d_translation[:, None].expand(-1, cx.shape[1], 3, 3)], dim=-1)
     ratio = (camera[..., :2] / z[..., None])[..., None]  # (B, L, 2, 1)
     J = (intrinsics[:, None, 0] / z)[..., None, None] * (d_camera[..., :2, :] - ratio * d_camera[..., 2:3, :])
     if mask is not None:
@@ -133,44 +138,54 @@ def _jacobian_at(x: Tensor, R: Tensor, camera: Tensor, z: Tensor, intrinsics: Te
 class _LandmarkTerms:
     """Residuals ``(B, 2L)`` and Jacobian ``(B, 2L, 6)`` of the pose LM, optionally weighted per landmark,
     without input checks (:func:`prealign_pose` checked them once). The LM asks for the Jacobian at the
-    trial point whose residuals it evaluated last, so the two share that point's camera geometry."""
+    trial point whose residuals it evaluated last, so the two share that point's camera geometry.
+
+    Poses here hold the camera-frame translation: ``x = (roll, pitch, yaw, T)`` with
+    :math:`X_c = R p + T`, i.e. ``T = R t`` for the ``t`` of :math:`X_c = R (p + t)` that
+    :func:`prealign_pose` returns. With ``t`` in the model frame a yaw step swings the head sideways
+    by ``|t| sin``: at long focal lengths (``|t|`` of metres) the yaw and ``t`` are tied in a narrow
+    curved valley where the LM crawls (40 iterations left the yaw 3-18° short at f = 3·10⁴-2·10⁵ px
+    on a 128² image, and at 10⁶ px it stayed at its start); ``T`` keeps them apart."""
 
     def __init__(self, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor,
                  sqrt_weights: Tensor | None = None) -> None:
         self.points, self.targets, self.mask, self.intrinsics = points, targets, mask, intrinsics
         self.sqrt_weights = sqrt_weights  # (B, L, 1) or None
         self._x: Tensor | None = None
-        self._geometry: tuple[Tensor, Tensor, Tensor] = ()  # type: ignore[assignment]
+        self._geometry: tuple[Tensor, Tensor, Tensor, Tensor] = ()  # type: ignore[assignment]
 
-    def geometry(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def geometry(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``R``, the camera points, their safe depths and the arms ``R p`` of the rotations."""
         if self._x is None or not torch.equal(x, self._x):
-            R, camera = _pose_camera(x, self.points)
-            self._x, self._geometry = x, (R, camera, _safe_depth(camera[..., 2]))
+            R = _rotation(x[:, :3])
+            arm = torch.matmul(self.points, R.transpose(1, 2))
+            camera = arm + x[:, None, 3:]
+            self._x, self._geometry = x, (R, camera, _safe_depth(camera[..., 2]), arm)
         return self._geometry
 
     def residuals(self, x: Tensor) -> Tensor:
-        _, camera, z = self.geometry(x)
+        _, camera, z, _ = self.geometry(x)
         pixels = self.intrinsics[:, None, 0:1] * camera[..., :2] / z[..., None] + self.intrinsics[:, None, 1:]
         r = torch.where(self.mask[..., None], pixels - self.targets, torch.zeros((), dtype=x.dtype, device=x.device))
         return (r if self.sqrt_weights is None else r * self.sqrt_weights).flatten(1)
 
     def jacobian(self, x: Tensor) -> Tensor:
-        R, camera, z = self.geometry(x)
-        J = _jacobian_at(x, R, camera, z, self.intrinsics, self.mask)
+        R, camera, z, arm = self.geometry(x)
+        J = _jacobian_at(x, R, camera, z, self.intrinsics, self.mask, arm)
         if self.sqrt_weights is not None:
             J = (J.view(J.shape[0], -1, 2, 6) * self.sqrt_weights[..., None]).flatten(1, 2)
         return J
 
 
 def _solve_pose(terms: _LandmarkTerms, x0: Tensor, max_iterations: int, ftol: float = 1e-7):
-    """The pre-alignment's LM on ``terms`` from ``x0`` ``(B, 6)``."""
+    """The pre-alignment's LM on ``terms`` from ``x0`` ``(B, 6)`` (camera-frame translations)."""
     return levenberg_marquardt(terms.residuals, x0, jacobian_fn=terms.jacobian, max_iterations=max_iterations,
                                damping=1e-4, ftol=ftol, xtol=1e-7)
 
 
 def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tensor, intrinsics: Tensor) -> Tensor:
-    """``t`` placing the points' centroid on the ray through the landmarks' centroid, at the depth
-    where their spreads match: :math:`z = f \\cdot \\mathrm{rms}_{3D} / \\mathrm{rms}_{2D}`."""
+    """Camera-frame ``T`` placing the points' centroid on the ray through the landmarks' centroid, at
+    the depth where their spreads match: :math:`z = f \\cdot \\mathrm{rms}_{3D} / \\mathrm{rms}_{2D}`."""
     w = mask.to(points.dtype)[..., None]
     count = w.sum(1).clamp_min(1.0)
     centroid3 = (points * w).sum(1) / count
@@ -181,16 +196,16 @@ def _initial_translation(points: Tensor, targets: Tensor, mask: Tensor, R: Tenso
     depth = f * (spread3 / spread2.clamp_min(1e-6)).sqrt()  # spread2 in px² ~ (f/z)² spread3 (x, y only)
     depth = depth * math.sqrt(2.0 / 3.0)  # the 2D spread sees two of three axes
     camera = torch.cat([(centroid2 - center) * depth / f, depth], dim=-1)
-    return (R.transpose(1, 2) @ camera[..., None])[..., 0] - centroid3
+    return camera - (R @ centroid3[..., None])[..., 0]
 
 
 def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor,
                 ransac_px: float | None = None) -> tuple[Tensor, Tensor]:
-    """OpenCV SQPnP poses ``(B, 6)`` as LM starts, and ``(B,)`` where OpenCV gave one (a failed view
-    gets zeros there). With ``ransac_px``, OpenCV's RANSAC (EPnP on minimal sets, deterministic: it
-    seeds its generator per call) with that reprojection threshold in pixels, and SQPnP on its
-    inliers; with 4 or 5 landmarks there is no minimal set to leave an outlier out, and it is SQPnP
-    on all of them."""
+    """OpenCV SQPnP poses ``(B, 6)`` (camera-frame translations) as LM starts, and ``(B,)`` where
+    OpenCV gave one (a failed view gets zeros there). With ``ransac_px``, OpenCV's RANSAC (EPnP on
+    minimal sets, deterministic: it seeds its generator per call) with that reprojection threshold
+    in pixels, and SQPnP on its inliers; with 4 or 5 landmarks there is no minimal set to leave an
+    outlier out, and it is SQPnP on all of them."""
     import cv2
     import numpy as np
 
@@ -214,13 +229,14 @@ def _pnp_starts(points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tenso
         if not found or not (np.isfinite(rvec).all() and np.isfinite(tvec).all()) or tvec[2, 0] <= 0:
             continue
         R = cv2.Rodrigues(rvec)[0]
-        rotations[b], translations[b], ok[b] = R, R.T @ tvec[:, 0], True
+        rotations[b], translations[b], ok[b] = R, tvec[:, 0], True
     poses = torch.cat([_euler(torch.from_numpy(rotations)), torch.from_numpy(translations)], dim=-1)
     return poses.to(dtype=points.dtype, device=points.device), torch.from_numpy(ok).to(points.device)
 
 
 def _pose_residuals(x: Tensor, points: Tensor, targets: Tensor, mask: Tensor, intrinsics: Tensor) -> Tensor:
-    """``(B, L, 2)`` landmark residuals of the poses ``x`` (zero where masked), without input checks."""
+    """``(B, L, 2)`` landmark residuals of the poses ``x`` (camera-frame translations; zero where
+    masked), without input checks."""
     return _LandmarkTerms(points, targets, mask, intrinsics).residuals(x).view(x.shape[0], -1, 2)
 
 
@@ -278,11 +294,17 @@ def _facing_cosine(points: Tensor, normals: Tensor, R: Tensor, t: Tensor, mask: 
 
 
 def _facing_camera(x: Tensor, points: Tensor, normals: Tensor | None, mask: Tensor) -> Tensor:
-    """``(B,)`` whether the poses ``x`` do not turn the view's landmarks away from the camera
-    (:func:`facing_cosine` at most ``FACING_AWAY_COSINE``); all True without normals."""
+    """``(B,)`` whether the poses ``x`` (camera-frame translations) do not turn the view's landmarks
+    away from the camera (:func:`facing_cosine` at most ``FACING_AWAY_COSINE``); all True without normals."""
     if normals is None:
         return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
-    return _facing_cosine(points, normals, _rotation(x[:, :3]), x[:, 3:], mask) <= FACING_AWAY_COSINE
+    R = _rotation(x[:, :3])
+    return _facing_cosine(points, normals, R, _model_translation(R, x), mask) <= FACING_AWAY_COSINE
+
+
+def _model_translation(R: Tensor, x: Tensor) -> Tensor:
+    """``t = Rᵀ T`` of poses ``x`` with camera-frame translations ``T`` and rotations ``R``."""
+    return (R.transpose(1, 2) @ x[:, 3:, None])[..., 0]
 
 
 def _best_candidates(batch: int, owner: Tensor, cost: Tensor, facing: Tensor) -> Tensor:
@@ -377,7 +399,8 @@ def prealign_pose(
         mask: which landmarks are present; default: the finite ones.
         init: ``"pnp"`` or ``"multistart"``.
         yaw_starts_deg: initial yaw angles in degrees for ``"multistart"``.
-        max_iterations: LM iterations per start.
+        max_iterations: LM iterations per start (most views converge in 2-5, near-orthographic
+            cameras too: the LM moves the camera-frame translation ``R t``, see ``_LandmarkTerms``).
         robust_scale: if given, up to ``robust_rounds`` more solves, each with Cauchy weights
             :math:`1 / (1 + (e_j / \delta)^2)` of the landmark errors :math:`e_j` (pixels) at its
             start (IRLS), so that a few spurious landmarks do not tilt the pose. They run from two
@@ -516,11 +539,12 @@ def prealign_pose(
         final_cost = 0.5 * error.square().sum(1)  # the plain cost at the robust pose
     # Wrap the angles into (-pi, pi].
     angles = torch.atan2(torch.sin(x[:, :3]), torch.cos(x[:, :3]))
+    R = _rotation(angles)
     count = mask.sum(1).to(dtype)
     return PoseEstimate(
         angles=angles.to(out_dtype),
-        translation=x[:, 3:].to(out_dtype),
-        rotation=_rotation(angles).to(out_dtype),
+        translation=_model_translation(R, x).to(out_dtype),
+        rotation=R.to(out_dtype),
         cost=final_cost.to(out_dtype),
         rms_px=(2.0 * final_cost / count).sqrt().to(out_dtype),
         status=status,
