@@ -142,3 +142,55 @@ def test_unreadable_weight_files_never_suggest_weights_only_false(tmp_path):
         with pytest.raises(ValueError, match=f"{name}: not a readable weight file") as caught:
             load_weights(tmp_path / name)
         assert reason in str(caught.value) and "weights_only" not in str(caught.value)
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"base_channels": 10**6}, r"base_channels: expected an integer in \[1, 4096\], got 1000000"),
+    ({"depth": 17}, r"depth: expected an integer in \[1, 16\], got 17"),
+    ({"num_landmarks": 10_001}, r"num_landmarks: expected an integer in \[0, 10000\], got 10001"),
+    ({"depth": 2.7}, r"depth: expected an integer in \[1, 16\], got 2.7"),
+    ({"depth": True}, r"depth: expected an integer in \[1, 16\], got True"),
+])
+def test_an_absurd_architecture_is_refused_before_the_network_is_built(tmp_path, change, match):
+    """base_channels 10**6 tried to allocate 72 TB (a RuntimeError naming no file); depth 2.7 loaded as 2."""
+    from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    path = tmp_path / "w.pt"
+    torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION,
+                "architecture": {"base_channels": 4, "depth": 2, "num_landmarks": 24, **change},
+                "state_dict": net.state_dict(), "metadata": {}}, path)
+    with pytest.raises(ValueError, match=f"w.pt: the weight file's architecture .* is not a valid network \\({match}\\)"):
+        load_weights(path)
+
+
+def test_weights_are_checked_against_the_architecture_before_it_is_built(tmp_path, monkeypatch):
+    """The stated architecture is built only once its shapes match the weights: a file stating a
+    wide network beside small weights is refused without allocating the wide one."""
+    from facenormals.nn import pretrained
+    from facenormals.nn.pretrained import WEIGHTS_FORMAT, WEIGHTS_VERSION
+
+    built = []
+
+    class Recording(NormalLandmarkUNet):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            built.append(self.head.weight.device.type)
+
+    monkeypatch.setattr(pretrained, "NormalLandmarkUNet", Recording)
+    path = tmp_path / "w.pt"
+    small = NormalLandmarkUNet(num_landmarks=10, base_channels=4, depth=2).state_dict()
+    for arch, match in (({"base_channels": 256, "depth": 2, "num_landmarks": 10}, r"stem.0.weight: shape \(4, 3, 3, 3\), "
+                                                                                  r"expected \(256, 3, 3, 3\)"),
+                        ({"base_channels": 4, "depth": 2, "num_landmarks": 24}, r"head.weight: shape \(14, 4, 1, 1\), "
+                                                                                 r"expected \(28, 4, 1, 1\)"),
+                        ({"base_channels": 4, "depth": 3, "num_landmarks": 10}, r"missing down.2.0.0.weight")):
+        torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "architecture": arch, "state_dict": small,
+                    "metadata": {}}, path)
+        with pytest.raises(ValueError, match=f"w.pt: weights do not match the architecture .*{match}"):
+            load_weights(path)
+    assert "cpu" not in built  # only shapes (meta tensors) were built
+    torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION,
+                "architecture": {"base_channels": 4, "depth": 2, "num_landmarks": 10}, "state_dict": small,
+                "metadata": {}}, path)
+    assert load_weights(path).num_landmarks == 10 and "cpu" in built

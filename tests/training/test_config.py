@@ -1,4 +1,5 @@
 import math
+import re
 
 import pytest
 
@@ -55,3 +56,27 @@ def test_values_of_the_wrong_type_name_the_field(field, value):
     as numbers (True)."""
     with pytest.raises(ValueError, match=field):
         TrainConfig(data="d", out="o", **{field: value})
+
+
+@pytest.mark.parametrize("device", ["cudafoo", "cuda:x", "cuda:-1", "cuda:", "cuda:0:1", " cuda", "CPU"])
+def test_only_the_documented_devices_are_taken(device):
+    """'cudafoo', 'cuda:x' and 'cuda:-1' were accepted although only 'cuda:N' is."""
+    with pytest.raises(ValueError, match="device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got"):
+        TrainConfig(data="d", out="o", device=device)
+    for good in ("auto", "cpu", "cuda", "cuda:0", "cuda:12"):
+        assert TrainConfig(data="d", out="o", device=good).device == good
+
+
+def test_a_learning_rate_above_the_cap_names_lr_and_the_option(tmp_path, capsys):
+    """--lr 1e38 was accepted, then failed at the first step with a float overflow naming no option."""
+    from facenormals.cli import main
+    from facenormals.training.config import MAX_LR
+
+    assert TrainConfig(data="d", out="o", lr=MAX_LR).lr == MAX_LR
+    for lr in (1e38, MAX_LR * 1.01):
+        with pytest.raises(ValueError, match=re.escape(f"lr: expected a learning rate of at most 10000, got {lr!r}")):
+            TrainConfig(data="d", out="o", lr=lr)
+    out = tmp_path / "run"
+    assert main(["train", "--data", str(tmp_path), "--out", str(out), "--lr", "1e38", "--quiet"]) == 1
+    assert "facenormals train: error: --lr: expected a learning rate of at most 10000, got 1e+38" in capsys.readouterr().err
+    assert not out.exists()

@@ -117,3 +117,39 @@ def test_the_global_foreground_is_counted_as_the_loss_counts_it():
         assert float(_foreground_per_rank(soft > 0.5, 1)) == 3.0
     finally:
         dist.destroy_process_group()
+
+
+@pytest.mark.parametrize("env, message", [
+    ({"WORLD_SIZE": "0"}, r"\$WORLD_SIZE: expected an integer >= 1, got 0"),
+    ({"RANK": "3", "WORLD_SIZE": "1"}, r"\$RANK: expected 0 <= RANK < WORLD_SIZE=1, got 3"),
+    ({"RANK": "-1"}, r"\$RANK: expected 0 <= RANK < WORLD_SIZE=1, got -1"),
+    ({"RANK": "2", "WORLD_SIZE": "2"}, r"\$RANK: expected 0 <= RANK < WORLD_SIZE=2, got 2"),
+    ({"LOCAL_RANK": "-2"}, r"\$LOCAL_RANK: expected an integer >= 0, got -2"),
+])
+def test_a_rank_or_world_size_out_of_range_is_refused_before_anything_is_written(monkeypatch, tmp_path, capsys,
+                                                                                 env, message):
+    """RANK=3 WORLD_SIZE=1 or RANK=-1 made no process rank 0: the run exited 0 having written
+    nothing; WORLD_SIZE=0 failed with a division by zero and left an empty --out folder."""
+    from facenormals.cli import main
+
+    for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(ValueError, match=message):
+        init_distributed("cpu")
+    out = tmp_path / "run"
+    config = TrainConfig(data="unused", out=str(out), steps=1, batch_size=2, workers=0, device="cpu",
+                         precision="fp32", base_channels=4, depth=2)
+    with pytest.raises(ValueError, match=message):
+        train(config, TinyHeads(8), progress=False)
+    assert not out.exists()
+    assert main(["train", "--data", str(tmp_path), "--out", str(out), "--device", "cpu", "--quiet"]) == 1
+    assert f"facenormals train: error: {message.replace(chr(92), '')}" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("device", ["cudafoo", "cuda:x", "cuda:-1", "cuda:", "gpu", 3])
+def test_init_distributed_takes_only_the_documented_devices(device):
+    with pytest.raises(ValueError, match="device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"):
+        init_distributed(device)

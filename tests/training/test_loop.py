@@ -1,4 +1,5 @@
 import csv
+import re
 
 import pytest
 import torch
@@ -266,8 +267,15 @@ def test_an_error_with_worker_processes_exits_instead_of_hanging(tmp_path):
     script = (
         "import sys\n"
         "from facenormals.training import TrainConfig, train\n"
+        "from facenormals.training import loop\n"
         "from tests.training.conftest import TinyHeads\n"
-        "config = TrainConfig(data='unused', out=sys.argv[1], steps=3, batch_size=4, lr=1e30, warmup_steps=1,\n"
+        "original, calls = loop.normal_landmark_loss, []\n"
+        "def diverging(*args, **kwargs):  # the second step's loss is NaN (lr is capped below a divergent 1e30)\n"
+        "    loss, terms = original(*args, **kwargs)\n"
+        "    calls.append(1)\n"
+        "    return (loss * float('nan') if len(calls) > 1 else loss), terms\n"
+        "loop.normal_landmark_loss = diverging\n"
+        "config = TrainConfig(data='unused', out=sys.argv[1], steps=3, batch_size=4, lr=3e-3, warmup_steps=1,\n"
         "    workers=1, device='cpu', precision='fp32', log_every=1, checkpoint_every=100, eval_every=100,\n"
         "    eval_samples=4, base_channels=4, depth=2, seed=3)\n"
         "train(config, TinyHeads(8), progress=False)\n"
@@ -429,9 +437,7 @@ def test_the_command_line_resumes_with_the_checkpoint_s_schedule(tmp_path, monke
     monkeypatch.setattr(training, "train", lambda config, progress=True: seen.append(config) or
                         __import__("facenormals.training.loop", fromlist=["x"]).TrainSummary(
                             0, 0, False, "steps", 0.0, None, tmp_path / "run" / "last.pt"))
-    (tmp_path / "run").mkdir()
-    state = {"format": "facenormals-train", "config": _config(tmp_path, lr=5e-4, warmup_steps=7).to_dict(), "step": 1}
-    torch.save(state, tmp_path / "run" / "last.pt")
+    train(_config(tmp_path, steps=1, lr=5e-4, warmup_steps=7), TinyHeads(8), progress=False)  # a whole checkpoint
     main(["train", "--data", "unused", "--out", str(tmp_path / "run"), "--steps", "9", "--quiet"])
     main(["train", "--data", "unused", "--out", str(tmp_path / "run"), "--steps", "9", "--lr", "1e-3", "--quiet"])
     assert (seen[0].lr, seen[0].warmup_steps, seen[0].steps) == (5e-4, 7, 9)
@@ -533,3 +539,73 @@ def test_a_network_too_deep_for_the_images_is_refused_before_the_folder(tmp_path
 def test_any_seed_below_2_63_trains(tmp_path):
     summary = train(_config(tmp_path, steps=1, seed=2 * 10**13), TinyHeads(8), progress=False)
     assert summary.step == 1
+
+
+@pytest.fixture(scope="module")
+def good_checkpoint(tmp_path_factory):
+    """The last.pt of one tiny run, shared by the damaged-checkpoint cases."""
+    root = tmp_path_factory.mktemp("good")
+    return train(_config(root, steps=2, checkpoint_every=2), TinyHeads(8), progress=False).checkpoint
+
+
+def _damage(state: dict, change: str) -> None:
+    from facenormals.nn import NormalLandmarkUNet
+
+    first = next(iter(state["model"]))
+    if change.startswith("no "):
+        state.pop(change[3:])
+    elif change == "nan model":
+        state["model"][first][...] = float("nan")
+    elif change == "inf ema":
+        state["ema"][first].view(-1)[0] = float("inf")
+    elif change == "nan optimiser":
+        next(iter(state["optimizer"]["state"].values()))["exp_avg"].view(-1)[0] = float("nan")
+    elif change == "text step":
+        state["step"] = "abc"
+    elif change == "negative step":
+        state["step"] = -3
+    elif change == "model not a dict":
+        state["model"] = [1, 2]
+    elif change == "10 landmarks":
+        other = NormalLandmarkUNet(num_landmarks=10, base_channels=4, depth=2).state_dict()
+        state.update(model=other, ema=other, num_landmarks=10)
+    elif change == "wider weights":  # the stated config (4 base channels) does not match the weights (8)
+        other = NormalLandmarkUNet(base_channels=8, depth=2).state_dict()
+        state.update(model=other, ema=other)
+    elif change == "foreign optimiser":
+        state["optimizer"]["param_groups"] = state["optimizer"]["param_groups"] * 2
+
+
+@pytest.mark.parametrize("change, message", [
+    ("no model", "corrupt checkpoint: no model weights"),
+    ("no ema", r"corrupt checkpoint: no averaged \(EMA\) weights"),
+    ("no optimizer", "corrupt checkpoint: no optimiser state"),
+    ("nan model", r"corrupt checkpoint: the model weights \('model'\) hold NaN or infinite values \(stem.0.weight"),
+    ("inf ema", r"corrupt checkpoint: the averaged \(EMA\) weights \('ema'\) hold NaN or infinite values"),
+    ("nan optimiser", r"corrupt checkpoint: the optimiser state \('optimizer'\) holds NaN"),
+    ("text step", "corrupt checkpoint: 'step' is 'abc', expected an integer >= 0"),
+    ("negative step", "corrupt checkpoint: 'step' is -3, expected an integer >= 0"),
+    ("no samples_seen", "corrupt checkpoint: no 'samples_seen' entry"),
+    ("model not a dict", r"corrupt checkpoint: the model weights \('model'\) are not a state dict"),
+    ("10 landmarks", "a checkpoint of a network with 10 landmarks; the run trains 24"),
+    ("wider weights", r"corrupt checkpoint: loading its model weights \('model'\) failed \(.*size mismatch"),
+    ("foreign optimiser", r"corrupt checkpoint: loading its optimiser state \('optimizer'\) failed"),
+])
+def test_a_damaged_checkpoint_is_named_and_never_resumed_or_exported(tmp_path, good_checkpoint, change, message):
+    """A missing entry was a KeyError traceback, other weights a size mismatch naming no file, NaN
+    weights a failure advising to resume from that same file, NaN averaged weights trained on and
+    were exported, and a text step an int() error naming no file."""
+    state = torch.load(good_checkpoint, weights_only=True)
+    _damage(state, change)
+    config = _config(tmp_path, steps=4)
+    last = tmp_path / "run" / "last.pt"
+    last.parent.mkdir()
+    torch.save(state, last)
+    with pytest.raises(ValueError, match=f"{re.escape(str(last))}: {message}"):
+        train(config, TinyHeads(8), progress=False)
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last.pt"]  # no log rows, nothing overwritten
+    if "loading its" not in message and "landmarks" not in message:  # what load_checkpoint itself sees
+        with pytest.raises(ValueError, match=f"{re.escape(str(last))}: {message}"):
+            export_weights(last, tmp_path / "w.pt")
+        assert not (tmp_path / "w.pt").exists()
+

@@ -17,6 +17,10 @@ WEIGHTS_VERSION = 1
 _SHIPPED = "normal_landmark_unet.pt"
 #: Detection threshold of landmark map peaks when a network carries no calibrated one.
 DEFAULT_LANDMARK_THRESHOLD = 0.1
+#: The architecture numbers a weight file may state, (low, high) inclusive: far above any network
+#: trained here (24 landmarks, 16 base channels, depth 5), low enough that a damaged number is refused
+#: before a network is built (base_channels 10**6 tried to allocate 72 TB).
+ARCHITECTURE_LIMITS = {"num_landmarks": (0, 10_000), "base_channels": (1, 4096), "depth": (1, 16)}
 
 
 def landmark_threshold(net: torch.nn.Module) -> float | torch.Tensor:
@@ -139,8 +143,9 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError: if it is not a facenormals weight file, does not match its architecture or holds
-            NaN or infinite weights.
+        ValueError: if it is not a facenormals weight file, states an architecture outside
+            ``ARCHITECTURE_LIMITS`` (checked, with the weights' shapes, before the network is built),
+            does not match its architecture or holds NaN or infinite weights.
 
     Example:
         >>> net = load_weights()
@@ -150,11 +155,27 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     path = pretrained_weights_path() if path is None else Path(path)
     payload = _read_payload(path)
     arch = payload["architecture"]
+    sizes = {}
+    for name, (low, high) in ARCHITECTURE_LIMITS.items():
+        value = arch[name]
+        if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+            raise ValueError(f"{path}: the weight file's architecture {arch} is not a valid network ({name}: expected "
+                             f"an integer in [{low}, {high}], got {value!r})")
+        sizes[name] = value
     try:
-        net = NormalLandmarkUNet(num_landmarks=int(arch["num_landmarks"]), base_channels=int(arch["base_channels"]),
-                                 depth=int(arch["depth"]))
+        with torch.device("meta"):  # shapes only: the weights are checked against them before memory is taken
+            shapes = {k: tuple(v.shape) for k, v in NormalLandmarkUNet(**sizes).state_dict().items()}
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: the weight file's architecture {arch} is not a valid network ({error})") from None
+    stored = payload["state_dict"]
+    problems = [f"missing {k}" for k in shapes if k not in stored]
+    problems += [f"unexpected {k}" for k in stored if k not in shapes]
+    problems += [f"{k}: shape {tuple(v.shape)}, expected {shapes[k]}" for k, v in stored.items()
+                 if k in shapes and tuple(v.shape) != shapes[k]]
+    if problems:
+        more = f"; and {len(problems) - 3} more" if len(problems) > 3 else ""
+        raise ValueError(f"{path}: weights do not match the architecture {arch} ({'; '.join(problems[:3])}{more})")
+    net = NormalLandmarkUNet(**sizes)
     expected = net.state_dict()
     for key, value in payload["state_dict"].items():  # load_state_dict would copy 0/1 integers into the weights
         if key in expected and expected[key].is_floating_point() and not value.is_floating_point():

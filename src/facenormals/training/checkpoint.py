@@ -29,9 +29,15 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """Read a checkpoint written by :func:`save_checkpoint`.
 
+    The entries a resume or an export reads are checked here, so that a damaged file is an error
+    naming it: ``step`` and ``samples_seen`` non-negative integers, ``world_size`` a positive one,
+    ``num_landmarks`` a non-negative one, ``model`` and ``ema`` state dicts of finite tensors and
+    ``optimizer`` an optimiser state dict (``state`` and ``param_groups``) of finite tensors.
+
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        ValueError: if it is not a facenormals training checkpoint.
+        ValueError: if it is not a facenormals training checkpoint, or one with missing, mistyped or
+            non-finite entries (``"<path>: corrupt checkpoint: ..."``).
     """
     path = Path(path)
     if not path.is_file():
@@ -45,7 +51,50 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(state.get("config"), dict):  # every reader takes the run's settings from it
         raise ValueError(f"{path}: a facenormals training checkpoint without its settings ('config'); it cannot "
                          "be resumed or exported")
+    _check_entries(path, state)
     return state
+
+
+def _is_count(value: object, low: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def _check_entries(path: Path, state: dict) -> None:
+    """Raise ``ValueError`` naming ``path`` and the entry when one a resume or an export reads is
+    missing, of the wrong type or not finite (a NaN model failed at the first step with advice to
+    resume from this same file; NaN averaged weights trained on and were exported)."""
+    def corrupt(what: str) -> ValueError:
+        return ValueError(f"{path}: corrupt checkpoint: {what}; it cannot be resumed or exported")
+
+    for key, low in (("step", 0), ("samples_seen", 0), ("world_size", 1), ("num_landmarks", 0)):
+        if key not in state:
+            raise corrupt(f"no {key!r} entry")
+        if not _is_count(state[key], low):
+            raise corrupt(f"{key!r} is {state[key]!r}, expected an integer >= {low}")
+    for key in ("base_channels", "depth", "batch_size"):
+        if not _is_count(state["config"].get(key), 1):
+            raise corrupt(f"config {key!r} is {state['config'].get(key)!r}, expected a positive integer")
+    for key, what in (("model", "model weights"), ("ema", "averaged (EMA) weights")):
+        weights = state.get(key)
+        if not isinstance(weights, dict) or not weights:
+            raise corrupt(f"no {what} ({key!r})" if weights is None else f"the {what} ({key!r}) are not a state dict")
+        for name, value in weights.items():
+            if not isinstance(value, torch.Tensor):
+                raise corrupt(f"the {what} ({key!r}) hold {name!r} of type {type(value).__name__}, not a tensor")
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise corrupt(f"the {what} ({key!r}) hold NaN or infinite values ({name}: "
+                              f"{int((~torch.isfinite(value)).sum())} of {value.numel()})")
+    optimizer = state.get("optimizer")
+    if optimizer is None:
+        raise corrupt("no optimiser state ('optimizer')")
+    if (not isinstance(optimizer, dict) or not isinstance(optimizer.get("state"), dict)
+            or not isinstance(optimizer.get("param_groups"), list)):
+        raise corrupt("the optimiser state ('optimizer') is not an optimiser state dict (state, param_groups)")
+    for index, entries in optimizer["state"].items():
+        for name, value in (entries.items() if isinstance(entries, dict) else ()):
+            if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                raise corrupt(f"the optimiser state ('optimizer') holds NaN or infinite values (parameter {index}, "
+                              f"{name})")
 
 
 def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True,

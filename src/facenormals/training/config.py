@@ -6,6 +6,7 @@ import dataclasses
 import math
 import numbers
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +16,14 @@ __all__ = ["TrainConfig"]
 #: The most DataLoader workers a config takes (each is a process): 99,999 exhausted the memory of the
 #: machine running it; 256 is far above the 1-14 the recipe has been run with.
 MAX_WORKERS = 256
+
+#: The largest peak learning rate a config takes: the recipe uses 2e-3 and AdamW steps of ~lr per
+#: weight diverge far below this; 1e38 was accepted and failed at the first step with a float
+#: overflow that named no option.
+MAX_LR = 1e4
+
+#: The devices a config takes (besides "auto" and "cpu"): "cuda" or "cuda:N".
+_CUDA_DEVICE = re.compile(r"cuda(:[0-9]+)?")
 
 
 def _is_real(value: object) -> bool:
@@ -35,8 +44,8 @@ class TrainConfig:
         holdout: held-out dataset folder scored every ``eval_every`` steps (optional).
         steps: optimiser steps in the whole run (the learning-rate schedule spans them).
         batch_size: images per step *per process* (DDP multiplies it by the world size).
-        lr: peak AdamW learning rate, reached after ``warmup_steps`` linear steps, then a cosine
-            decay to ``min_lr_ratio * lr`` at ``steps``.
+        lr: peak AdamW learning rate (at most ``MAX_LR``, 1e4), reached after ``warmup_steps``
+            linear steps, then a cosine decay to ``min_lr_ratio * lr`` at ``steps``.
         weight_decay: AdamW's decoupled weight decay.
         ema_decay: decay of the exponential moving average of the weights that is evaluated and
             exported (an "anytime" model: good even if the run is stopped early).
@@ -116,11 +125,14 @@ class TrainConfig:
                 if not (_is_real(value) and math.isfinite(value) and (value > 0 if positive else value >= 0)):
                     raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'} value, "
                                      f"got {value!r}")
+        if self.lr > MAX_LR:
+            raise ValueError(f"lr: expected a learning rate of at most {MAX_LR:g}, got {self.lr!r}")
         if not (_is_real(self.ema_decay) and 0.0 <= self.ema_decay < 1.0):
             raise ValueError(f"ema_decay: expected a value in [0, 1), got {self.ema_decay!r}")
         if not (_is_real(self.min_lr_ratio) and 0.0 <= self.min_lr_ratio <= 1.0):
             raise ValueError(f"min_lr_ratio: expected a value in [0, 1], got {self.min_lr_ratio!r}")
-        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu") or self.device.startswith("cuda")):
+        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu")
+                                                    or _CUDA_DEVICE.fullmatch(self.device)):
             raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
         if self.precision not in ("auto", "bf16", "fp32"):
             raise ValueError(f"precision: expected 'auto', 'bf16' or 'fp32', got {self.precision!r}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,13 +46,23 @@ def init_distributed(device: str = "auto") -> DistContext:
         device: ``"auto"`` (CUDA when available), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
 
     Raises:
-        ValueError: on an unknown device or CUDA requested where there is none.
+        ValueError: on an unknown device, CUDA requested where there is none, or a ``RANK``,
+            ``WORLD_SIZE`` or ``LOCAL_RANK`` that is not an integer or out of range
+            (``WORLD_SIZE >= 1``, ``0 <= RANK < WORLD_SIZE``, ``LOCAL_RANK >= 0``).
     """
     rank, world = environment_integer("RANK", 0), environment_integer("WORLD_SIZE", 1)
     local = environment_integer("LOCAL_RANK", 0)
+    # checked before anything is created: a rank outside [0, WORLD_SIZE) made no process rank 0, so
+    # a run exited 0 having written nothing, and WORLD_SIZE=0 failed with a division by zero
+    if world < 1:
+        raise ValueError(f"$WORLD_SIZE: expected an integer >= 1, got {world}")
+    if not 0 <= rank < world:
+        raise ValueError(f"$RANK: expected 0 <= RANK < WORLD_SIZE={world}, got {rank}")
+    if local < 0:
+        raise ValueError(f"$LOCAL_RANK: expected an integer >= 0, got {local}")
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device != "cpu" and not device.startswith("cuda"):
+    if not isinstance(device, str) or not (device == "cpu" or re.fullmatch(r"cuda(:[0-9]+)?", device)):
         raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}")
     if device.startswith("cuda"):
         if not torch.cuda.is_available():

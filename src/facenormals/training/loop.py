@@ -228,6 +228,16 @@ def _float_outputs(out: UNetOutput) -> UNetOutput:
     return UNetOutput(*(t.float() for t in out))
 
 
+def _restore(last: Path, what: str, load) -> None:
+    """Run ``load`` (a ``load_state_dict``), turning its error into one naming the checkpoint."""
+    try:
+        load()
+    except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as error:
+        reason = " ".join(str(error).split())  # torch's message lists one mismatch a line
+        raise ValueError(f"{last}: corrupt checkpoint: loading its {what} failed ({reason}); use another --out "
+                         "to start afresh") from None
+
+
 def _initialise_from(net: NormalLandmarkUNet, ema: NormalLandmarkUNet, config: TrainConfig) -> None:
     """Load ``config.init`` (a weight file) into the network and its moving average."""
     from facenormals.nn import load_weights
@@ -314,9 +324,12 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                       "the epoch's sample order differs from here on (samples may repeat before the epoch ends)")
             if int(state["step"]) >= config.steps:
                 print(f"note: {last} is at step {state['step']}, at or beyond --steps {config.steps}: nothing to train")
-        net.load_state_dict(state["model"])
-        ema.load_state_dict(state["ema"])
-        optimizer.load_state_dict(state["optimizer"])
+        if state["num_landmarks"] != net.num_landmarks:
+            raise ValueError(f"{last}: a checkpoint of a network with {state['num_landmarks']} landmarks; the run "
+                             f"trains {net.num_landmarks}; use another --out to start afresh")
+        _restore(last, "model weights ('model')", lambda: net.load_state_dict(state["model"]))
+        _restore(last, "averaged (EMA) weights ('ema')", lambda: ema.load_state_dict(state["ema"]))
+        _restore(last, "optimiser state ('optimizer')", lambda: optimizer.load_state_dict(state["optimizer"]))
         for group in optimizer.param_groups:  # the optimiser state restores the old setting; the config wins
             group["weight_decay"] = config.weight_decay
         step, samples_seen = int(state["step"]), int(state["samples_seen"])
