@@ -180,6 +180,12 @@ def check_faces(faces: object, num_vertices: int, name: str = "faces") -> dict[s
     return dims
 
 
+def values_readable(x: Tensor) -> bool:
+    """Whether a check may read ``x``'s values: not while ``torch.compile`` traces, nor for a tensor
+    that a ``torch.func`` transform wraps (``vmap`` cannot branch on values)."""
+    return not (torch.compiler.is_compiling() or is_functorch_wrapped_tensor(x))
+
+
 def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
     """Raise ``ValueError`` if ``x`` holds NaN or infinite values (only NaN with ``allow_inf``, e.g. for
     a z-buffer that is ``inf`` on background).
@@ -195,7 +201,7 @@ def check_finite(x: Tensor, name: str, allow_inf: bool = False) -> None:
         ValueError: zbuffer: expected no NaN values, got 1 NaN entries
     """
     check_tensor(x, name)
-    if torch.compiler.is_compiling() or is_functorch_wrapped_tensor(x):
+    if not values_readable(x):
         return
     if not allow_inf and bool(torch.isfinite(x.sum())):  # fast path: a finite sum has no NaN or inf
         return

@@ -18,9 +18,7 @@ import math
 import torch
 from torch import Tensor
 
-from torch._C._functorch import is_functorch_wrapped_tensor  # private; what torch.func itself asks
-
-from facenormals.core.check import check_finite, check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape, values_readable
 
 __all__ = ["euler_rotation_derivatives", "euler_to_rotation_matrix", "rotation_matrix_to_euler"]
 
@@ -156,7 +154,7 @@ def _check_rotation(rotation: Tensor) -> None:
     """Raise ``ValueError`` unless every matrix of ``rotation`` ``(B, 3, 3)`` (finite) is a rotation, to
     the tolerance of :func:`rotation_matrix_to_euler`. Like ``check_finite`` it reads values, so it is
     skipped while ``torch.compile`` traces and for tensors that ``torch.func`` wraps."""
-    if rotation.shape[0] == 0 or torch.compiler.is_compiling() or is_functorch_wrapped_tensor(rotation):
+    if rotation.shape[0] == 0 or not values_readable(rotation):
         return
     work = rotation.detach().to(torch.promote_types(rotation.dtype, torch.float32))
     eye = torch.eye(3, dtype=work.dtype, device=work.device)

@@ -186,10 +186,7 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
             raise ValueError(f"{path}: the weights hold NaN or infinite values ({key}: "
                              f"{int((~torch.isfinite(value)).sum())} of {value.numel()})")
-    try:
-        net.load_state_dict(state)
-    except RuntimeError as error:
-        raise ValueError(f"{path}: weights do not match the architecture {arch} ({error})") from None
+    net.load_state_dict(state)  # keys and shapes checked above
     net.metadata = dict(payload.get("metadata", {}))
     try:  # a NaN threshold detects nothing, silently; a string fails in the middle of a reconstruction
         check_threshold(net.metadata.get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD), net.num_landmarks)

@@ -22,8 +22,13 @@ MAX_WORKERS = 256
 #: overflow that named no option.
 MAX_LR = 1e4
 
-#: The devices a config takes (besides "auto" and "cpu"): "cuda" or "cuda:N".
-_CUDA_DEVICE = re.compile(r"cuda(:[0-9]+)?")
+#: The device names training takes besides "auto": "cpu", "cuda" or "cuda:N".
+_DEVICE_NAME = re.compile(r"cpu|cuda(:[0-9]+)?")
+
+
+def is_device_name(value: object) -> bool:
+    """``value`` is ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (what "auto" resolves to, or names)."""
+    return isinstance(value, str) and _DEVICE_NAME.fullmatch(value) is not None
 
 
 def _is_real(value: object) -> bool:
@@ -131,8 +136,7 @@ class TrainConfig:
             raise ValueError(f"ema_decay: expected a value in [0, 1), got {self.ema_decay!r}")
         if not (_is_real(self.min_lr_ratio) and 0.0 <= self.min_lr_ratio <= 1.0):
             raise ValueError(f"min_lr_ratio: expected a value in [0, 1], got {self.min_lr_ratio!r}")
-        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu")
-                                                    or _CUDA_DEVICE.fullmatch(self.device)):
+        if not (is_device_name(self.device) or (isinstance(self.device, str) and self.device == "auto")):
             raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
         if self.precision not in ("auto", "bf16", "fp32"):
             raise ValueError(f"precision: expected 'auto', 'bf16' or 'fp32', got {self.precision!r}")

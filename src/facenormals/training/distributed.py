@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from facenormals.core.check import environment_integer
+from facenormals.training.config import is_device_name
 
 __all__ = ["DistContext", "init_distributed", "resolve_precision"]
 
@@ -62,7 +62,7 @@ def init_distributed(device: str = "auto") -> DistContext:
         raise ValueError(f"$LOCAL_RANK: expected an integer >= 0, got {local}")
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    if not isinstance(device, str) or not (device == "cpu" or re.fullmatch(r"cuda(:[0-9]+)?", device)):
+    if not is_device_name(device):
         raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}")
     if device.startswith("cuda"):
         if not torch.cuda.is_available():
