@@ -122,6 +122,21 @@ def test_inputs_on_another_device_than_the_model_are_named(model, head):
         fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics.to("meta"))
 
 
+def test_non_finite_normal_maps_name_their_views(model, head):
+    """A NaN in one of several views named only ``normal_maps``, leaving the user to search the views."""
+    obs = render_oracle_views(model, head, [-30.0, 0.0, 30.0], image_size=32)
+    maps = obs.normal_maps.clone()
+    maps[0, 2, 1, 5, 7] = float("nan")
+    with pytest.raises(ValueError, match=r"normal_maps: expected finite values, got 1 NaN or infinite entries, "
+                                         r"in view 2$"):
+        fit_head(maps, obs.landmarks, model)
+    pair = torch.cat([obs.normal_maps, maps])
+    pair[1, 0, 0, 0, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"got 2 NaN or infinite entries, in view 0 of subject 1, "
+                                         r"view 2 of subject 1$"):
+        fit_head(pair, torch.cat([obs.landmarks] * 2), model)
+
+
 def test_bad_input(model, head):
     obs = render_oracle_views(model, head, [0.0], image_size=32)
     maps = obs.normal_maps.clone()

@@ -109,6 +109,17 @@ class FitResult:
                 f"({self.reasons[subject]}); energies: {terms}; {views}")
 
 
+def _check_finite_views(x: Tensor, name: str) -> None:
+    """:func:`check_finite` of ``(B, V, ...)`` whose error names the views holding NaN or inf."""
+    try:
+        check_finite(x, name)
+    except ValueError as error:
+        bad = (~torch.isfinite(x)).flatten(2).any(-1).nonzero().tolist()
+        where = ", ".join(f"view {v}{f' of subject {b}' if x.shape[0] > 1 else ''}" for b, v in bad[:5])
+        more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
+        raise ValueError(f"{error}, in {where}{more}") from None
+
+
 def _as_views(x: Tensor, name: str, tail: list, views: dict[str, int] | None = None) -> Tensor:
     """Accept ``(V, ...)`` for one subject or ``(B, V, ...)``; return ``(B, V, ...)``. ``views``
     (``{"B": B, "V": V}``) binds the leading sizes to those of the normal maps."""
@@ -381,7 +392,7 @@ def fit_head(
             raise ValueError(f"{name}: expected device {device} (the model's: move one to the other), got {x.device}")
     check_floating(normal_maps, "normal_maps")  # an integer map would truncate the unit normals to 0
     check_floating(landmarks, "landmarks")
-    check_finite(normal_maps, "normal_maps")
+    _check_finite_views(normal_maps, "normal_maps")
     normal_maps, landmarks = normal_maps.to(dtype), landmarks.to(dtype)
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
