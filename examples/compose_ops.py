@@ -3,12 +3,14 @@
     python examples/compose_ops.py
 """
 
+import argparse
 import math
 
 import torch
 
 import facenormals as fn
 
+argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
 torch.manual_seed(0)
 model = fn.load_model("builtin", dtype=torch.float64)  # no download needed
 vertices = model(model.sample_shape_coeffs(1))  # (1, N, 3), mm

@@ -1,6 +1,6 @@
 """Recover a random synthetic head from its exact normal map and landmarks (the synthetic demo, ``facenormals demo``).
 
-    python examples/demo_synthetic_fit.py [--model auto|ict|builtin|PATH] [--seed 0]
+    python examples/demo_synthetic_fit.py [--model auto|ict|builtin|PATH] [--seed 0] [--out out/demo]
 """
 
 import argparse
