@@ -148,3 +148,48 @@ def test_other_stderr_output_during_the_decode_is_passed_on(capfd, monkeypatch):
     assert read_image(photo).shape == (512, 512, 3)
     assert capfd.readouterr().err == "something else\n"
 
+
+
+def test_padding_between_header_segments_is_not_damage(tmp_path):
+    """A stray byte before the SOS marker (header padding some writers leave) decodes to the same
+    pixels, but libjpeg's "extraneous bytes before marker 0xda" warning made it a corrupt JPEG."""
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    data = photo.read_bytes()
+    sos = data.index(b"\xff\xda")
+    second = 4 + int.from_bytes(data[4:6], "big")  # the end of the first segment after SOI
+    padded = tmp_path / "padded.jpg"
+    padded.write_bytes(data[:second] + b"\x00\x17" + data[second:sos] + b"\x00" + data[sos:])
+    np.testing.assert_array_equal(read_image(padded), read_image(photo))
+
+
+def test_truncated_jpeg_and_png_are_named_damaged_not_foreign(tmp_path):
+    """OpenCV 5 returns no image for a cut-off JPEG or PNG, without libjpeg's warning: the message
+    said "not an image", sending the user looking for a format problem."""
+    import cv2
+
+    for suffix in (".jpg", ".png"):
+        ok, encoded = cv2.imencode(suffix, _banded(64, 64))
+        cut = tmp_path / f"cut{suffix}"
+        cut.write_bytes(encoded.tobytes()[: len(encoded) // 2])
+        kind = "JPEG" if suffix == ".jpg" else "PNG"
+        with pytest.raises(ImageReadError, match=rf"cut\{suffix}: a damaged or truncated {kind} file"):
+            read_image(cut)
+
+
+def test_reading_without_stderr(tmp_path):
+    """With file descriptor 2 closed Python sets ``sys.stderr = None``; the decode's warning capture
+    called ``sys.stderr.flush()`` and every JPEG failed with an AttributeError nobody could see."""
+    import subprocess
+    import sys
+
+    photo = Path(__file__).resolve().parents[2] / "examples" / "data" / "astronaut.jpg"
+    code = ("import sys; assert sys.stderr is None; from facenormals.reconstruct import read_image; "
+            f"print(read_image({str(photo)!r}).shape)")
+    out = subprocess.run([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                         close_fds=True, pass_fds=(), text=True, preexec_fn=lambda: __import__("os").close(2))
+    assert out.stdout.strip() == "(512, 512, 3)", out
+
+
+def test_a_path_of_the_wrong_type_is_named():
+    with pytest.raises(ImageReadError, match="path: expected a file name .*got NoneType"):
+        read_image(None)

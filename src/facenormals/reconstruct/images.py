@@ -38,6 +38,8 @@ def read_image(path: str | Path) -> np.ndarray:
     """
     import cv2
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise ImageReadError(f"path: expected a file name (str or os.PathLike), got {type(path).__name__}")
     path = Path(path)
     if not path.exists():
         raise ImageReadError(f"{path}: no such file")
@@ -52,6 +54,9 @@ def read_image(path: str | Path) -> np.ndarray:
     except cv2.error as error:  # e.g. a header claiming more pixels than OpenCV accepts
         raise ImageReadError(f"{path}: cannot be decoded ({str(error).strip().splitlines()[-1]})") from None
     if image is None:
+        kind = next((name for signature, name in _SIGNATURES if data[: len(signature)].tobytes() == signature), None)
+        if kind is not None:  # OpenCV 5 returns None for a cut-off JPEG or PNG, without libjpeg's warning
+            raise ImageReadError(f"{path}: a damaged or truncated {kind} file")
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
     if damage:
         raise ImageReadError(f"{path}: corrupt JPEG data ({damage[0]})")
@@ -62,7 +67,49 @@ _JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG file", "Inconsistent
 """libjpeg's warnings about damaged data (``JWRN_*``: bad Huffman codes, extraneous bytes, missing
 restart markers, a truncated file); its other warnings (an unknown JFIF revision...) are harmless."""
 
+_SIGNATURES = ((b"\xff\xd8\xff", "JPEG"), (b"\x89PNG\r\n\x1a\n", "PNG"))
+"""File signatures of the formats whose damage :func:`read_image` names as such."""
+
 _STDERR_LOCK = threading.Lock()
+
+#: JPEG markers without a length field (TEM and RSTn); every other header marker is followed by one.
+_STANDALONE = frozenset([0x01, *range(0xD0, 0xD8)])
+
+
+def _without_header_padding(data: np.ndarray) -> np.ndarray:
+    """``data`` without stray bytes between the header segments of a JPEG (before its first scan).
+
+    Some writers pad the header; libjpeg skips the bytes but warns "Corrupt JPEG data: N extraneous
+    bytes before marker 0x..", which cannot be told apart from damaged scan data by its text. Stray
+    bytes before the first SOS cannot come from scan data, so they are dropped here and any warning
+    left is real damage. A header that does not parse is returned unchanged for the decoder to judge.
+    """
+    raw = data.tobytes()
+    keep, pos, start = [], 2, 2  # after SOI
+    while pos < len(raw):
+        if raw[pos] != 0xFF:  # a stray byte between segments
+            keep.append(raw[start:pos])
+            while pos < len(raw) and raw[pos] != 0xFF:
+                pos += 1
+            start = pos
+            continue
+        while pos < len(raw) and raw[pos] == 0xFF:  # fill bytes are allowed before a marker
+            pos += 1
+        if pos >= len(raw):
+            return data
+        marker = raw[pos]
+        pos += 1
+        if marker == 0xDA:  # start of scan: the rest is scan data and later segments
+            if not keep:
+                return data
+            keep.append(raw[start:])
+            return np.frombuffer(raw[:2] + b"".join(keep), dtype=np.uint8)
+        if marker in _STANDALONE:
+            continue
+        if marker == 0x00 or pos + 2 > len(raw):
+            return data
+        pos += (raw[pos] << 8) | raw[pos + 1]
+    return data
 
 
 def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
@@ -80,6 +127,9 @@ def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
         return None, []
     if data[:3].tobytes() != b"\xff\xd8\xff":
         return cv2.imdecode(data, cv2.IMREAD_COLOR), []
+    data = _without_header_padding(data)
+    if sys.stderr is None:  # Python started with file descriptor 2 closed: no warnings to read
+        return cv2.imdecode(data, cv2.IMREAD_COLOR), []
     with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
         sys.stderr.flush()
         try:
@@ -96,6 +146,6 @@ def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
         lines = capture.read().decode("utf-8", errors="replace").splitlines(keepends=True)
     damage = [line.strip() for line in lines if line.startswith(_JPEG_DAMAGE)]
     others = "".join(line for line in lines if not line.startswith(_JPEG_DAMAGE))
-    if others:
+    if others and sys.stderr is not None:
         sys.stderr.write(others)
     return image, damage
