@@ -406,3 +406,15 @@ def test_models_show_of_a_model_file_with_a_single_landmark_name_is_a_clear_erro
                                       "landmark_indices": np.array(5)})
     assert main(["models", "show", str(tmp_path / "one.npz")]) == 1
     assert "one.npz: array 'landmark_names' has shape (), expected a 1-D list" in capsys.readouterr().err
+
+
+def test_demo_names_a_bad_image_size_and_an_empty_output_folder(tmp_path, monkeypatch):
+    """``image_size=0`` failed as "intrinsics: expected focal lengths f > 0", and ``out_dir=""``
+    (Path("") is the working folder) wrote the demo's files there."""
+    monkeypatch.chdir(tmp_path)
+    model = builtin_head_model()
+    with pytest.raises(ValueError, match="image_size: expected an integer >= 8, got 0"):
+        run_demo(model, image_size=0, log=lambda *_: None)
+    with pytest.raises(ValueError, match="out_dir: expected a folder name or None, got ''"):
+        run_demo(model, out_dir="", log=lambda *_: None)
+    assert list(tmp_path.iterdir()) == []

@@ -132,3 +132,22 @@ def test_crop_square_names_what_is_wrong(image, box, size, name):
     """These reached OpenCV (cv2.error) or a bare unpacking error."""
     with pytest.raises(ValueError, match=name):
         crop_square(image, box, size)
+
+
+def test_face_boxes_and_crop_options_are_checked():
+    """``scale=-1`` gave a negative side, NaN boxes NaN crops, a zero box a ZeroDivisionError in iou
+    and an (x, y, w, h) tuple an AttributeError."""
+    for args, match in (((0, 0, float("nan"), 10), "FaceBox width: expected a finite number, got nan"),
+                        ((0, 0, 0, 0), r"FaceBox: expected width and height > 0, got 0 x 0"),
+                        (("1", 0, 5, 5), "FaceBox x: expected a finite number, got '1'")):
+        with pytest.raises(ValueError, match=match):
+            FaceBox(*args)
+    face = FaceBox(100, 100, 50, 50)
+    for kwargs, match in (({"scale": -1}, "scale: expected a number > 0, got -1"),
+                          ({"scale": float("nan")}, "scale: expected a finite number, got nan"),
+                          ({"shift": float("inf")}, "shift: expected a finite number, got inf")):
+        with pytest.raises(ValueError, match=match):
+            head_crop_box(face, **kwargs)
+    with pytest.raises(ValueError, match="face: expected a FaceBox, got tuple"):
+        head_crop_box((100, 100, 50, 50))
+    assert FaceBox(np.float64(1.5), np.int64(2), 3, 4).center == (3.0, 4.0)

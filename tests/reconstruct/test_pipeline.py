@@ -673,3 +673,73 @@ def test_stale_views_are_removed_but_never_an_input(oracle, tmp_path):
                      path=str(photo))
     write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
     assert not (tmp_path / "view1_normals.png").exists() and photo.read_bytes() == b"this run's photo"
+
+
+def test_a_stale_view_name_that_cannot_be_removed_is_a_warning_not_a_failed_run(oracle, tmp_path, monkeypatch):
+    """A folder named like an earlier run's view picture: every new file was in place, but the
+    removal after them raised IsADirectoryError and the CLI reported the run as failed."""
+    from pathlib import Path
+
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
+    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                                  mirror=False)
+    (tmp_path / "view3_overlay.png").mkdir()
+    view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300))
+    written = write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
+    assert {p.name for p in written} >= {"head.ply", "head.obj", "params.json", "view0_overlay.png"}
+    assert (tmp_path / "view3_overlay.png").is_dir()
+    (tmp_path / "view2_normals.png").write_bytes(b"an earlier run's")
+    real = Path.unlink
+
+    def refuse(self, missing_ok=False):
+        if self.name == "view2_normals.png":
+            raise PermissionError(13, "Permission denied")
+        return real(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", refuse)
+    with pytest.warns(RuntimeWarning, match=r"view2_normals.png: an earlier run's picture .* could not be removed "
+                                            r"\(Permission denied\)"):
+        written = write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
+    assert (tmp_path / "head.ply") in written
+
+
+def test_empty_output_folder_and_paths_of_the_wrong_type_are_named(tmp_path, monkeypatch):
+    """``out_dir=""`` is Path("") = the working folder: the library wrote the reconstruction there
+    and removed a user's view5_overlay.png as a stale view; bytes were iterated as file names."""
+    from facenormals.reconstruct import reconstruct_photos
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "view5_overlay.png").write_bytes(b"the user's own file")
+    with pytest.raises(ValueError, match="out_dir: expected a folder name or None, got ''"):
+        reconstruct_photos(["a.jpg"], "", model="builtin", log=lambda message: None)
+    for paths, got in ((b"a.jpg", "bytes"), (None, "NoneType"), ([5], "int 5")):
+        with pytest.raises(ValueError, match=f"paths: expected .*got {got}"):
+            reconstruct_photos(paths, None, model="builtin", log=lambda message: None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["view5_overlay.png"]
+
+
+def test_weight_metadata_is_checked_before_the_photos_and_names_the_file(monkeypatch, tmp_path, random_weights):
+    """Bad ``fit_weights`` metadata, or a network the built-in mirroring cannot average, failed only
+    after every photo was read and detected, without naming the weight file."""
+    import shutil
+
+    from facenormals.nn import update_weight_metadata
+    from facenormals.reconstruct import photos
+
+    def no_detector(*args, **kwargs):
+        raise AssertionError("a photo was read")
+
+    monkeypatch.setattr(photos, "prepare_view", no_detector)
+    bad = tmp_path / "nan_fit_weights.pt"
+    shutil.copy(random_weights, bad)
+    update_weight_metadata(bad, fit_weights={"normals": float("nan")})
+    with pytest.raises(ValueError, match=r"nan_fit_weights.pt: weights metadata 'fit_weights'"):
+        photos.reconstruct_photos(["a.jpg"], None, model="builtin", weights=bad, log=lambda message: None)
+    ten = tmp_path / "ten_landmarks.pt"
+    torch.save({"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION,
+                "architecture": {"base_channels": 4, "depth": 2, "num_landmarks": 10},
+                "state_dict": NormalLandmarkUNet(num_landmarks=10, base_channels=4, depth=2).state_dict(),
+                "metadata": {}}, ten)
+    with pytest.raises(ValueError, match=r"ten_landmarks.pt: the built-in mirror averaging needs the library's 24"):
+        photos.reconstruct_photos(["a.jpg"], None, model="builtin", weights=ten, log=lambda message: None)

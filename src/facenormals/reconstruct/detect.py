@@ -15,6 +15,7 @@ hits are false positives far more often than faces.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -38,6 +39,14 @@ class FaceBox:
     width: float
     height: float
     hits: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("x", "y", "width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                raise ValueError(f"FaceBox {name}: expected a finite number, got {value!r}")
+        if not (self.width > 0 and self.height > 0):
+            raise ValueError(f"FaceBox: expected width and height > 0, got {self.width!r} x {self.height!r}")
 
     @property
     def center(self) -> tuple[float, float]:
@@ -130,6 +139,13 @@ def head_crop_box(face: FaceBox, scale: float = 1.9, shift: float = -0.12) -> tu
     Returns:
         ``(x0, y0, side)``: the crop's top-left corner and side, image pixels (may leave the image).
     """
+    if not isinstance(face, FaceBox):
+        raise ValueError(f"face: expected a FaceBox, got {type(face).__name__}")
+    for name, value in (("scale", scale), ("shift", shift)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    if scale <= 0:
+        raise ValueError(f"scale: expected a number > 0, got {scale!r}")
     cx, cy = face.center
     side = scale * max(face.width, face.height)
     cy += shift * face.height

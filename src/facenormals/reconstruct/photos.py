@@ -15,8 +15,10 @@ import torch
 from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
-from facenormals.reconstruct.pipeline import (NetworkMaps, PhotoView, Reconstruction, landmark_channels, predict_maps,
-                                              reconstruct_views, reconstruction_would_replace, write_reconstruction)
+from facenormals.models import LANDMARK_NAMES
+from facenormals.reconstruct.pipeline import (NetworkMaps, PhotoView, Reconstruction, landmark_channels,
+                                              network_fit_weights, predict_maps, reconstruct_views,
+                                              reconstruction_would_replace, write_reconstruction)
 
 if TYPE_CHECKING:
     from facenormals.fitting import FitWeights
@@ -125,8 +127,16 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
 
     if isinstance(paths, (str, os.PathLike)):  # one photo, not a sequence of one-letter file names
         paths = [paths]
+    if isinstance(paths, (bytes, bytearray)) or not isinstance(paths, Sequence):
+        raise ValueError(f"paths: expected an image file name or a sequence of them, got {type(paths).__name__}")
     if not paths:
         raise ValueError("paths: expected at least one image, got none")
+    for path in paths:
+        if not isinstance(path, (str, os.PathLike)):
+            raise ValueError(f"paths: expected file names (str or os.PathLike), got {type(path).__name__} {path!r}")
+    if out_dir is not None and not (isinstance(out_dir, (str, os.PathLike)) and str(out_dir)):
+        # Path("") is the working folder: a mistaken empty name would write and remove files there
+        raise ValueError(f"out_dir: expected a folder name or None, got {out_dir!r}")
     try:
         kind = torch.device(device).type
     except (RuntimeError, TypeError):
@@ -139,7 +149,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ValueError(f"{out_dir}: the output folder exists as a file")
     for path in paths if out_dir is not None else ():
-        if isinstance(path, (str, os.PathLike)) and reconstruction_would_replace(path, out_dir):
+        if reconstruction_would_replace(path, out_dir):
             raise ValueError(f"{path}: this photo is in the output folder under a name the reconstruction writes or "
                              "removes; move it, or choose another output folder")
     boxes = list(boxes) if boxes is not None else [None] * len(paths)
@@ -162,6 +172,14 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     require_pose_landmarks(model)
     landmark_channels(model)
     net = load_weights(weights, device=device)
+    try:  # what the weight file says about itself, before the photos are read
+        if fit_weights is None:
+            network_fit_weights(net)
+        if mirror and net.num_landmarks != len(LANDMARK_NAMES):
+            raise ValueError(f"the built-in mirror averaging needs the library's {len(LANDMARK_NAMES)} landmark "
+                             f"channels, and this network predicts {net.num_landmarks} (mirror=False fits without it)")
+    except ValueError as error:
+        raise ValueError(f"{weights if weights is not None else 'the shipped weights'}: {error}") from None
     timings["load"] = time.perf_counter() - start
 
     t = time.perf_counter()

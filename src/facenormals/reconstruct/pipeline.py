@@ -16,6 +16,7 @@ import json
 import math
 import re
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -461,8 +462,13 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
     inputs = {Path(view.path).resolve() for view in rec.views if view.path is not None}
     for stale in out.glob("view*_*.png"):
         match = _VIEW_PICTURE.fullmatch(stale.name)
-        if match and int(match.group(1)) >= len(rec.views) and stale.resolve() not in inputs:
-            stale.unlink(missing_ok=True)
+        if (match and int(match.group(1)) >= len(rec.views) and stale.resolve() not in inputs
+                and (stale.is_file() or stale.is_symlink())):
+            try:
+                stale.unlink(missing_ok=True)
+            except OSError as error:  # the new files are in place: a leftover is worth a warning, not a failure
+                warnings.warn(f"{stale}: an earlier run's picture of a view this run does not have could not be "
+                              f"removed ({error.strerror or error})", RuntimeWarning, stacklevel=2)
     return written
 
 
