@@ -374,3 +374,16 @@ def test_residuals_under_torch_func():
         torch.randn(1, 3, dtype=torch.float64)
     )
     assert_close(jac.reshape(3, 3), torch.eye(3, dtype=torch.float64) / 2)
+
+
+def test_prior_residuals_under_vmap_and_jacfwd_over_std():
+    """Regression: the std > 0 check read values of a tensor vmap wraps (RuntimeError: data-dependent
+    control flow); like the finiteness checks it is now skipped there."""
+    std = torch.rand(4, 3, dtype=torch.float64) + 1
+    coeffs = torch.randn(1, 3, dtype=torch.float64)
+    out = torch.func.vmap(lambda s: prior_residuals(coeffs, s))(std)
+    assert_close(out[:, 0], coeffs / std)
+    jac = torch.func.jacfwd(lambda s: prior_residuals(coeffs, s))(std[0])
+    assert_close(jac[0], torch.diag(-coeffs[0] / std[0] ** 2))
+    with pytest.raises(ValueError, match="std: expected values > 0"):
+        prior_residuals(coeffs, -std[0])  # still checked outside the transforms

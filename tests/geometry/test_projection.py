@@ -123,6 +123,24 @@ def test_compile_smoke():
     assert_close(fn(points, R, t, K)[0], project_points(points, R, t, K)[0])
 
 
+def test_vmap_and_jacfwd_over_the_intrinsics():
+    """Regression: the f > 0 check read values of a tensor vmap wraps (RuntimeError: data-dependent
+    control flow); like the finiteness checks it is now skipped there."""
+    from facenormals.geometry import projection_jacobian
+
+    points, R, t, K = random_problem(1, 4)
+    intrinsics = torch.cat([K, K * 1.1])
+    pixels = torch.func.vmap(lambda k: project_points(points, R, t, k[None])[0])(intrinsics)
+    for b in range(2):
+        assert_close(pixels[b], project_points(points, R, t, intrinsics[b : b + 1])[0])
+    cam = transform_points(points, R, t)
+    jac = torch.func.vmap(lambda k: projection_jacobian(cam, k[None]))(intrinsics)
+    assert_close(jac[1], projection_jacobian(cam, intrinsics[1:]))
+    assert torch.func.jacfwd(lambda k: project_points(points, R, t, k)[0])(K).shape == (1, 4, 2, 1, 3)
+    with pytest.raises(ValueError, match="intrinsics: expected focal lengths f > 0"):
+        project_points(points, R, t, -K)  # still checked outside the transforms
+
+
 def test_projection_jacobian_matches_autograd():
     from facenormals.geometry import projection_jacobian
 

@@ -142,6 +142,21 @@ def test_gimbal_lock_gives_angles_that_rebuild_the_matrix(dtype, pitch_sign):
                      atol=1e-4 if dtype == torch.float32 else 1e-9)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("pitch_sign", [1.0, -1.0])
+def test_gradients_stay_finite_at_an_exact_gimbal_lock(dtype, pitch_sign):
+    """Regression: at pitch exactly ±90 deg, R[1,0] = R[1,1] = 0 and the derivative of
+    sqrt(R[1,0]² + R[1,1]²) is infinite: the gradient of the angles was NaN."""
+    R = torch.tensor([[[1.0, 0, 0], [0, 0, -pitch_sign], [0, pitch_sign, 0]]], dtype=dtype, requires_grad=True)
+    angles = rotation_matrix_to_euler(R)
+    assert abs(float(angles[0, 1].detach()) - pitch_sign * math.pi / 2) < 1e-6
+    for k in range(3):
+        (grad,) = torch.autograd.grad(angles[0, k], R, retain_graph=True)
+        assert torch.isfinite(grad).all(), k
+    (grad,) = torch.autograd.grad(angles[0, 1], R)
+    assert grad[0, 1, :2].abs().max() == 0  # a kink (|x|): the where-pattern's subgradient 0
+
+
 def test_gradients_stay_finite_where_the_unused_branch_has_zero_arguments():
     """yaw 90 deg, pitch and roll 0: R[0,0] = R[0,1] = 0, the arguments of the gimbal-lock branch's
     atan2, which is not taken; its 0/0 must not reach the gradient through torch.where."""

@@ -1,4 +1,5 @@
 import re
+import struct
 
 import pytest
 import torch
@@ -252,12 +253,28 @@ def test_malformed_files_are_never_read_differently_from_trimesh(tmp_path, name)
 
 def test_an_obj_with_comments_after_data_reads_its_numbers(tmp_path):
     path = tmp_path / "commented.obj"
-    path.write_text("v 0 0 0 # origin\nv 1e0 0 0\nv 0 1.0E+0 0\nf 1 2 3 # one triangle\n")
+    path.write_text("v 0 0 0 # origin\nv 1e0 0 0 # vertex_1\nv 0 1.0E+0 0\nf 1 2 3 # one triangle, face_0\n")
     vertices, faces = load_mesh(path)
     assert vertices.tolist() == [[0, 0, 0], [1, 0, 0], [0, 1, 0]] and faces.tolist() == [[0, 1, 2]]
 
 
+_PLY_HEADER = (b"ply\nformat %s 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+               b"element face 1\nproperty list uchar %s vertex_indices\nend_header\n")
+
+
 @pytest.mark.parametrize("name, data, match", [
+    ("float indices.ply", _PLY_HEADER % (b"binary_little_endian", b"float") + bytes(36)
+     + struct.pack("<B3f", 3, 0, 1, 1.9), "expected integer face indices, got 'property list uchar float vertex_indices'"),
+    ("float indices big endian.ply", _PLY_HEADER % (b"binary_big_endian", b"double") + bytes(36)
+     + struct.pack(">B3d", 3, 0, 1, 1.9), "expected integer face indices, got 'property list uchar double vertex_ind"),
+    ("float indices ascii.ply", _PLY_HEADER % (b"ascii", b"float") + b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+     "expected integer face indices, got 'property list uchar float vertex_indices'"),
+    ("fractional index.ply", _PLY_HEADER % (b"ascii", b"int") + b"0 0 0\n1 0 0\n0 1 0\n3 0 1 1.9\n",
+     "line 13: expected integers for property 'vertex_indices', got '3 0 1 1.9'"),
+    ("count beyond indices.ply", _PLY_HEADER % (b"ascii", b"int") + b"0 0 0\n1 0 0\n0 1 0\n4 0 1 2\n",
+     "line 13: expected 4 number(s) for property 'vertex_indices', got '4 0 1 2'"),
+    ("shifted number.ply", _PLY_HEADER % (b"ascii", b"int") + b"0 0 0 1\n1 0\n0 1 0\n3 0 1 2\n",
+     "line 10: expected 3 numbers, got '0 0 0 1'"),
     ("short face.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 2 4 3\nf 1 2", "a face line with fewer than 3 vertices"),
     ("short trailing vertex.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\nv 4 5 6\nv 7 8\n",
      "line 7: expected a vertex of 3 numbers, got 'v 7 8'"),
@@ -267,7 +284,9 @@ def test_an_obj_with_comments_after_data_reads_its_numbers(tmp_path):
 ])
 def test_damage_that_trimesh_reads_silently_is_named(tmp_path, name, data, match):
     """trimesh dropped a face line cut short, ignored data lines beyond an ASCII PLY's counts, and a
-    short trailing vertex line failed inside numpy without the file's name."""
+    short trailing vertex line failed inside numpy without the file's name; float face indices were
+    truncated (0, 1, 1.9 read as 0, 1, 1), and an ASCII line's numbers were taken whatever its list
+    length said (``4 0 1 2`` read as the triangle 0 1 2)."""
     path = tmp_path / name
     path.write_bytes(data)
     with pytest.raises(ValueError, match=re.escape(f"{path}: ") + ".*" + re.escape(match)):

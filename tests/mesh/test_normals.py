@@ -181,6 +181,29 @@ def test_isolated_and_degenerate(mode):
         assert torch.isfinite(grad).all()
 
 
+@pytest.mark.parametrize("mode", MODES)
+def test_degenerate_faces_pass_no_gradient(mode):
+    """Regression: at a vertex of a collinear face only, both normalisations sat on their eps clamp
+    and the gradient was 6e24 (1/eps²) in ring mode, 1e12 in area mode; in ring mode a degenerate
+    face beside good ones moved their gradients by rounding times 1/eps. Below eps, a normalisation
+    now gives 0 and no gradient. (In area mode a degenerate face's area has a true derivative.)"""
+    vertices = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [1, 1, 0.5], [3, 0, 0]]],
+                            dtype=torch.float64).requires_grad_()
+    good = torch.tensor([[0, 1, 3], [1, 4, 3]])
+    degenerate = torch.tensor([[1, 2, 5], [3, 4, 4]])  # collinear [1, 2, 5] alone at 2 and 5; [3, 4, 4] repeats
+    faces = torch.cat([good, degenerate])
+    weights = torch.randn(1, 6, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for op in (lambda v: vertex_normals(v, faces, mode), VertexNormals(faces, 6, mode)):
+        n = op(vertices)
+        assert torch.equal(n[0, [2, 5]], torch.zeros(2, 3, dtype=torch.float64))
+        (grad,) = torch.autograd.grad((n[:, [2, 5]] * weights[:, [2, 5]]).sum(), vertices, retain_graph=True)
+        assert torch.equal(grad, torch.zeros_like(grad))
+        if mode == "ring":
+            (grad,) = torch.autograd.grad((n * weights).sum(), vertices)
+            (reference,) = torch.autograd.grad((vertex_normals(vertices, good) * weights).sum(), vertices)
+            assert torch.equal(grad, reference)
+
+
 def test_empty_faces():
     v = torch.randn(2, 4, 3)
     faces = torch.zeros(0, 3, dtype=torch.long)
@@ -298,9 +321,11 @@ def test_bad_inputs():
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 @pytest.mark.parametrize("mode", ["ring", "area"])
-def test_half_precision_normals_of_head_sized_faces(dtype, mode):
-    """Edges of 20 mm: the squared norm of the face normal (1.6e5) would overflow float16."""
-    vertices = torch.tensor([[[0.0, 0, 0], [20, 0, 0], [0, 20, 0]]], dtype=dtype)
+@pytest.mark.parametrize("edge", [20.0, 300.0])
+def test_half_precision_normals_of_head_sized_faces(dtype, mode, edge):
+    """Edges of 20 mm: the squared norm of the face normal (1.6e5) would overflow float16; of 300 mm
+    (a head's span), the cross product itself (9e4): the normals were NaN."""
+    vertices = torch.tensor([[[0.0, 0, 0], [edge, 0, 0], [0, edge, 0]]], dtype=dtype)
     normals = vertex_normals(vertices, torch.tensor([[0, 1, 2]]), mode=mode)
     assert normals.dtype == dtype
     assert_close(normals.float(), torch.tensor([[[0.0, 0, 1]] * 3]), atol=1e-3, rtol=0)

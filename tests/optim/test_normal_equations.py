@@ -64,6 +64,11 @@ def test_gradcheck() -> None:
         (torch.zeros(1, 5, 3), torch.zeros(1, 4), r"residuals: expected shape \(B, M\) with M=5.*got \(1, 4\)"),
         (torch.zeros(1, 5, 3, dtype=torch.long), torch.zeros(1, 5), "jacobian: expected a floating"),
         (torch.zeros(1, 5, 3), torch.zeros(1, 5, dtype=F64), "residuals: expected dtype"),
+        # regression: NaN spread through JᵀJ and Jᵀr silently
+        (torch.zeros(1, 5, 3).index_fill(1, torch.tensor([2]), float("nan")), torch.zeros(1, 5),
+         "jacobian: expected finite values, got 3 NaN or infinite entries"),
+        (torch.zeros(1, 5, 3), torch.tensor([[0.0, float("inf"), 0, 0, 0]]),
+         "residuals: expected finite values, got 1 NaN or infinite entries"),
     ],
 )
 def test_bad_inputs_name_the_argument(J, r, match) -> None:

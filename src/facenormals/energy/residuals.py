@@ -21,7 +21,9 @@ import math
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_all_finite, check_floating, check_nonnegative, check_same_dtype_device, check_shape
+from facenormals.core.check import (
+    check_all_finite, check_floating, check_nonnegative, check_same_dtype_device, check_shape, values_readable,
+)
 from facenormals.sampling.bicubic import sample_bicubic
 
 __all__ = ["landmark_residuals", "normal_residuals", "prior_residuals"]
@@ -240,8 +242,8 @@ def prior_residuals(coeffs: Tensor, std: Tensor, weight: float = 1.0) -> Tensor:
 
     Raises:
         ValueError: on wrong shapes, non-floating inputs, mismatched dtypes, non-finite ``coeffs``,
-            ``std`` not finite and > 0 (both checked outside ``torch.compile`` only) or a negative
-            ``weight``.
+            ``std`` not finite and > 0 (both checked outside ``torch.compile`` and ``torch.func``
+            transforms only) or a negative ``weight``.
 
     Shape:
         - coeffs: :math:`(B, K)`
@@ -262,7 +264,7 @@ def prior_residuals(coeffs: Tensor, std: Tensor, weight: float = 1.0) -> Tensor:
     check_same_dtype_device(coeffs, "coeffs", std=std)
     scale = math.sqrt(check_nonnegative(weight, "weight"))
     check_all_finite(coeffs=coeffs.detach(), std=std.detach())
-    if not torch.compiler.is_compiling() and not bool((std > 0).all()):
+    if values_readable(std) and not bool((std > 0).all()):
         raise ValueError(f"std: expected values > 0, got {int((~(std > 0)).sum())} entries <= 0")
 
     residuals = coeffs / std

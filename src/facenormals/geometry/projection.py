@@ -5,7 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_all_finite, check_floating, check_positive, check_same_dtype_device, check_shape
+from facenormals.core.check import (
+    check_all_finite, check_floating, check_positive, check_same_dtype_device, check_shape, values_readable,
+)
 
 __all__ = ["project_points", "projection_jacobian", "transform_points"]
 
@@ -25,7 +27,7 @@ def _check_pose(points: Tensor, rotation: Tensor, translation: Tensor, **intrins
 
 
 def _check_focal(intrinsics: Tensor) -> None:
-    if not torch.compiler.is_compiling() and not bool((intrinsics[:, 0] > 0).all()):
+    if values_readable(intrinsics) and not bool((intrinsics[:, 0] > 0).all()):  # not under compile or vmap
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")
 
 

@@ -117,7 +117,8 @@ def rotation_matrix_to_euler(rotation: Tensor) -> Tensor:
     ``yaw ∓ roll`` is determined: within ``sqrt(eps)`` of it (``hypot(R[1,0], R[1,1])`` below the
     square root of the dtype's resolution, where the formulas above would divide rounding noise)
     roll is 0 and ``yaw = atan2(sign(-R[1,2]) R[0,1], R[0,0])``, so that the angles still give back
-    ``R`` (to about ``sqrt(eps)``).
+    ``R`` (to about ``sqrt(eps)``). Gradients are finite everywhere: at exactly ``|pitch| = π/2``,
+    the kink of the hypot, the pitch's gradient in ``R[1,0]`` and ``R[1,1]`` is 0.
 
     The matrices must be rotations: orthonormal, :math:`\max |R^T R - I| \le 10^{-3}` (or 8 times
     the dtype's resolution where that is larger: float16, bfloat16), with determinant +1. That
@@ -171,10 +172,12 @@ def _check_rotation(rotation: Tensor) -> None:
 def _euler(rotation: Tensor) -> Tensor:
     """:func:`rotation_matrix_to_euler` without the input checks."""
     r10, r11, r12 = rotation[:, 1, 0], rotation[:, 1, 1], rotation[:, 1, 2]
-    cos_pitch = torch.sqrt(r10 * r10 + r11 * r11)
+    squared = r10 * r10 + r11 * r11
+    positive = squared > 0  # sqrt's derivative is infinite at 0 (times 0: NaN at pitch exactly ±90°)
+    cos_pitch = torch.where(positive, torch.sqrt(torch.where(positive, squared, 1.0)), 0.0)
     pitch = torch.atan2(-r12, cos_pitch)
-    # Gimbal lock: roll 0, yaw from the top-left block. Each atan2 gets harmless arguments where its
-    # result is not used, so that no 0/0 reaches the gradients through torch.where.
+    # Gimbal lock: roll 0, yaw from the top-left block. Each atan2 (and the sqrt above) gets harmless
+    # arguments where its result is not used, so that no 0/0 reaches the gradients through torch.where.
     lock = cos_pitch <= torch.finfo(rotation.dtype).eps ** 0.5
     zero, one = torch.zeros_like(r10), torch.ones_like(r10)
     roll = torch.atan2(torch.where(lock, zero, r10), torch.where(lock, one, r11))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +112,8 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
 
     Raises:
         ValueError: naming the file when it is missing, unreadable, not a triangle mesh, holds
-            non-finite coordinates or faces indexing missing vertices.
+            non-finite coordinates, faces indexing missing vertices or face indices of a float
+            type, or (ASCII PLY) a data line whose numbers do not fit the header's properties.
     """
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise ValueError(f"dtype: expected a floating torch.dtype for the vertices, got {dtype!r}")
@@ -146,7 +148,7 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     if path.suffix.lower() == ".ply":
-        _check_ascii_ply_counts(path)
+        _check_ply(path)
     try:
         mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
     except Exception as error:  # trimesh raises many types for corrupt files
@@ -159,27 +161,91 @@ def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return points, np.asarray(mesh.faces)
 
 
-def _check_ascii_ply_counts(path: Path) -> None:
-    """An ASCII PLY's body must hold as many lines as its header's elements count: trimesh reads
-    the counted lines and ignores the rest silently (a damaged or hand-edited file)."""
-    with open(path, "rb") as file:
-        head = file.read(65536)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0 or b"format ascii" not in head[:end]:
-        return  # binary PLY (trimesh checks its length) or no header: trimesh's errors
-    counts = [int(words[2]) for words in (line.split() for line in head[:end].splitlines())
-              if len(words) == 3 and words[0] == b"element" and words[2].isdigit()]
-    with open(path, "rb") as file:
-        body = file.read().split(b"end_header", 1)[1].splitlines()[1:]
-    lines = sum(1 for line in body if line.strip())
-    if lines != sum(counts):
-        raise ValueError(f"{path}: the PLY header announces {sum(counts)} data lines, the file holds {lines}")
-
-
 #: PLY scalar type names and their little-endian numpy types.
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
               "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
               "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+_PLY_INTEGERS = {name for name, code in _PLY_TYPES.items() if code[-2] in "iu"}
+_INTEGER = re.compile(rb"[+-]?[0-9]+")
+
+
+def _ply_header(header: str) -> tuple[list[str], list[tuple[str, int, list[list[str]]]]] | None:
+    """The format line's words and the elements ``(name, count, properties)`` of a PLY header (its
+    text before ``end_header``), each property as its words after ``property``; ``None`` if a line
+    is none of these."""
+    lines = [line.split() for line in header.splitlines()[1:]]
+    lines = [line for line in lines if line and line[0] not in ("comment", "obj_info")]
+    if not lines or lines[0][0] != "format":
+        return None
+    elements: list[tuple[str, int, list[list[str]]]] = []
+    for line in lines[1:]:
+        if line[0] == "element" and len(line) == 3 and line[2].isdigit():
+            elements.append((line[1], int(line[2]), []))
+        elif line[0] == "property" and elements:
+            elements[-1][2].append(line[1:])
+        else:
+            return None
+    return lines[0], elements
+
+
+def _check_index_types(path: Path, face_property: list[str]) -> None:
+    """Refuse a face list whose count or indices have a float type: read as integers, truncated."""
+    if face_property[0] == "list" and len(face_property) == 4 and not set(face_property[1:3]) <= _PLY_INTEGERS:
+        raise ValueError(f"{path}: expected integer face indices, got 'property {' '.join(face_property)}'")
+
+
+def _check_ply(path: Path) -> None:
+    """Refuse what trimesh reads silently wrong: face indices of a float type, and in an ASCII PLY a
+    body of more or fewer lines than the header counts (trimesh ignores the rest) or a line whose
+    numbers do not fit its element's properties (``4 0 1 2`` read as ``0 1 2``, an index ``1.9`` as 1)."""
+    with open(path, "rb") as file:
+        head = file.read(65536)
+    end = head.find(b"end_header")
+    parsed = _ply_header(head[:end].decode("ascii", "replace")) if head.startswith(b"ply") and end >= 0 else None
+    if parsed is None:
+        return  # trimesh's errors
+    form, elements = parsed
+    for name, _, properties in elements:
+        for face_property in properties if name == "face" else ():
+            if len(properties) == 1 or face_property[-1] in ("vertex_indices", "vertex_index"):  # trimesh's faces
+                _check_index_types(path, face_property)
+    if form[1:2] != ["ascii"]:
+        return  # binary: trimesh checks its length
+    with open(path, "rb") as file:
+        body = file.read().split(b"end_header", 1)[1].splitlines()[1:]
+    first = head[:end].count(b"\n") + 2  # the line number of body[0]
+    rows = [(number, line.split()) for number, line in enumerate(body, first) if line.strip()]
+    total = sum(count for _, count, _ in elements)
+    if len(rows) != total:
+        raise ValueError(f"{path}: the PLY header announces {total} data lines, the file holds {len(rows)}")
+    start = 0
+    for _, count, properties in elements:
+        for number, words in rows[start : start + count]:
+            problem = _ascii_row_problem(words, properties)
+            if problem is not None:
+                line = b" ".join(words).decode(errors="replace")
+                raise ValueError(f"{path}: line {number}: expected {problem}, got {line!r}")
+        start += count
+
+
+def _ascii_row_problem(words: list[bytes], properties: list[list[str]]) -> str | None:
+    """What the numbers ``words`` of an ASCII PLY line lack to fit ``properties``; ``None`` if they do."""
+    at = 0
+    for prop in properties:
+        if prop[0] == "list":
+            if at == len(words) or not words[at].isdigit():
+                return f"a list length for property {prop[-1]!r}"
+            kind, size = prop[2], int(words[at])
+            at += 1
+        else:
+            kind, size = prop[0], 1
+        values = words[at : at + size]
+        if len(values) < size:
+            return f"{size} number(s) for property {prop[-1]!r}"
+        if kind in _PLY_INTEGERS and not all(_INTEGER.fullmatch(value) for value in values):
+            return f"integers for property {prop[-1]!r}"
+        at += size
+    return None if at == len(words) else f"{at} numbers"
 
 
 def _read_triangle_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -192,18 +258,10 @@ def _read_triangle_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     if not data.startswith(b"ply\n") or end < 0:
         return None
     body = end + len(b"end_header\n")
-    lines = [line.split() for line in data[:end].decode("ascii", "replace").splitlines()[1:]]
-    lines = [line for line in lines if line and line[0] not in ("comment", "obj_info")]
-    if not lines or lines[0] != ["format", "binary_little_endian", "1.0"]:
+    parsed = _ply_header(data[:end].decode("ascii", "replace"))
+    if parsed is None or parsed[0] != ["format", "binary_little_endian", "1.0"]:
         return None
-    elements: list[tuple[str, int, list[list[str]]]] = []
-    for line in lines[1:]:
-        if line[0] == "element" and len(line) == 3 and line[2].isdigit():
-            elements.append((line[1], int(line[2]), []))
-        elif line[0] == "property" and elements:
-            elements[-1][2].append(line[1:])
-        else:
-            return None
+    elements = parsed[1]
     if [name for name, _, _ in elements] != ["vertex", "face"]:
         return None
     (_, num_vertices, vertex_properties), (_, num_faces, face_properties) = elements
@@ -217,6 +275,7 @@ def _read_triangle_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     face_property = face_properties[0]
     if len(face_property) != 4 or face_property[0] != "list":
         return None
+    _check_index_types(path, face_property)
     count_kind, index_kind = face_property[1:3]
     if count_kind not in _PLY_TYPES or index_kind not in _PLY_TYPES:
         return None
@@ -246,13 +305,14 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         data = file.read()
     vertex_rows, face_rows = [], []
     for line in data.splitlines():
-        words = line.split(b"#", 1)[0].split()
+        content = line.split(b"#", 1)[0]  # a comment may hold anything, e.g. "# vertex_0"
+        words = content.split()
         if not words:
             continue
         if words[-1].endswith(b"\\"):
             return None  # continued on the next line
         key = words[0]
-        if key in (b"v", b"f") and b"_" in line:
+        if key in (b"v", b"f") and b"_" in content:
             return None  # "1_0" parses as 10
         if key == b"v":
             if not 4 <= len(words) <= 8:  # x y z, then w or r g b (or w r g b)
@@ -262,7 +322,7 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
             if len(words) < 4:  # trimesh would drop it silently, e.g. a file cut short in its last line
                 raise ValueError(f"{path}: a face line with fewer than 3 vertices: {line.decode(errors='replace')!r}")
             corners = [word.split(b"/", 1)[0] for word in words[1:]]
-            if b"-" in line:  # relative indices: -1 is the last vertex so far
+            if b"-" in content:  # relative indices: -1 is the last vertex so far
                 try:
                     corners = [c if int(c) > 0 else str(len(vertex_rows) + int(c) + 1).encode() for c in corners]
                 except ValueError:

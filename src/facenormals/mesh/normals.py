@@ -23,11 +23,16 @@ Two estimators are provided, selected by ``mode``:
 Faces are wound counter-clockwise seen from outside, so the face normal
 :math:`(v_1 - v_0) \times (v_2 - v_0)` points outwards (``docs/conventions.md``).
 
-Every normalisation is :math:`x / \max(\lVert x \rVert, \varepsilon)` (as in
-:func:`torch.nn.functional.normalize`): degenerate faces contribute (nearly) nothing in both
-modes, vertices used by no face get a zero normal, and for finite vertices (NaN or infinite ones
-are refused) neither values nor gradients are ever NaN. (The gradient through an exactly
-degenerate face is finite but of order :math:`1/\varepsilon`.)
+Every normalisation is :math:`x / \lVert x \rVert`, and 0 where :math:`\lVert x \rVert <
+\varepsilon` (where :func:`torch.nn.functional.normalize` gives :math:`x / \varepsilon`):
+exactly degenerate faces (a zero cross product) contribute nothing in both modes, vertices used
+by no face (or by such faces only) get a zero normal, and for finite vertices (NaN or infinite
+ones are refused) neither values nor gradients are ever NaN. No gradient passes a norm below
+:math:`\varepsilon` (:math:`x / \varepsilon` would pass one of order :math:`1/\varepsilon`, and
+:math:`1/\varepsilon^2` at a vertex of degenerate faces only): in ``"ring"`` mode an exactly
+degenerate face passes none; in ``"area"`` mode the derivative of its area still reaches vertices
+with other faces. Half precision (float16, bfloat16) is computed in float32 and rounded back: the
+cross product of 300 mm edges (9e4) overflows float16.
 
 Implementation (no Python loop over vertices or faces): the vertices are laid out as an
 ``(N, 3B)`` matrix whose rows hold the components planar, ``(3, B)``; the face corners are gathered
@@ -67,16 +72,21 @@ def _check_vertices(vertices: object, num_vertices: int | None = None) -> None:
     check_finite(vertices, "vertices")  # a NaN vertex spreads NaN normals over its ring
 
 
-def _normalise(x: Tensor, eps: float) -> Tensor:
-    """``x / max(|x|, eps)`` over dim 1 of size 3, written out per component (faster than
-    :func:`torch.nn.functional.normalize` on this layout). The clamp keeps the value and the
-    gradient finite at ``x = 0``. Half precision is normalised in float32: the squared norm of a
-    face of 20 mm edges (1.6e5) overflows float16."""
-    if x.dtype in (torch.float16, torch.bfloat16):
-        return _normalise(x.float(), eps).to(x.dtype)
+def _inverse_norm(x: Tensor, eps: float) -> Tensor:
+    """``1 / |x|`` over dim 1 of size 3 (kept, as size 1), and 0 where ``|x| < eps`` (``eps²`` at
+    least the dtype's smallest normal number): neither value nor gradient is infinite. Zeroing this
+    small factor, rather than selecting ``x`` to keep ``x / eps`` without its gradient, added about
+    5% to :func:`vertex_normals` instead of 20% (ICT head, CPU, float32)."""
     a, b, c = x.unbind(1)
+    squared = (a * a + b * b + c * c).unsqueeze(1)
     eps2 = max(eps * eps, torch.finfo(x.dtype).tiny)
-    return x * (a * a + b * b + c * c).clamp_min(eps2).rsqrt().unsqueeze(1)
+    return torch.where(squared < eps2, 0.0, squared.clamp_min(eps2).rsqrt())
+
+
+def _normalise(x: Tensor, eps: float) -> Tensor:
+    """``x / |x|`` over dim 1 of size 3, 0 where ``|x| < eps``, written out per component (faster
+    than :func:`torch.nn.functional.normalize` on this layout)."""
+    return x * _inverse_norm(x, eps)
 
 
 def _cross(a: Tensor, b: Tensor, dim: int = -1) -> Tensor:
@@ -119,6 +129,14 @@ def _scatter_add(normals: Tensor, corners: Tensor, num_vertices: int) -> Tensor:
     return summed
 
 
+def _vertex_normals(vertices: Tensor, corners: Tensor, ring: bool, eps: float) -> Tensor:
+    """:func:`vertex_normals` of checked inputs, half precision computed in float32."""
+    if vertices.dtype in (torch.float16, torch.bfloat16):
+        return _vertex_normals(vertices.float(), corners, ring, eps).to(vertices.dtype)
+    normals = _face_normals(vertices, corners, ring, eps)
+    return _finish(_scatter_add(normals, corners, vertices.shape[1]), vertices.shape[0], eps)
+
+
 def vertex_normals(vertices: Tensor, faces: Tensor, mode: str = "ring", eps: float = 1e-12) -> Tensor:
     """Unit vertex normals of a batch of triangle meshes sharing one topology.
 
@@ -129,11 +147,11 @@ def vertex_normals(vertices: Tensor, faces: Tensor, mode: str = "ring", eps: flo
             ``vertices`` if needed.
         mode: ``"ring"`` (normalised sum of the unit normals of the incident faces, the paper's
             one-ring estimator) or ``"area"`` (normalised sum of area-weighted face normals).
-        eps: norms are clamped to at least ``eps`` before dividing.
+        eps: a vector whose norm is below ``eps`` normalises to 0, passing no gradient.
 
     Returns:
-        ``(B, N, 3)`` unit outward normals (zero for vertices that no face uses), with the dtype
-        and device of ``vertices``.
+        ``(B, N, 3)`` unit outward normals (zero for vertices in no face or in degenerate faces
+        only), with the dtype and device of ``vertices``.
 
     Raises:
         ValueError: on badly shaped, non-floating or non-finite vertices, non-integer or
@@ -155,8 +173,7 @@ def vertex_normals(vertices: Tensor, faces: Tensor, mode: str = "ring", eps: flo
     _check_mode(mode)
     eps = check_positive(eps, "eps")
     corners = faces.to(device=vertices.device, dtype=torch.long).t().reshape(-1)
-    normals = _face_normals(vertices, corners, mode == "ring", eps)
-    return _finish(_scatter_add(normals, corners, vertices.shape[1]), vertices.shape[0], eps)
+    return _vertex_normals(vertices, corners, mode == "ring", eps)
 
 
 class VertexNormals(nn.Module):
@@ -170,7 +187,7 @@ class VertexNormals(nn.Module):
         faces: ``(F, 3)`` integer vertex indices, wound counter-clockwise seen from outside.
         num_vertices: ``N``; defaults to ``faces.max() + 1``.
         mode: ``"ring"`` or ``"area"``, as in :func:`vertex_normals`.
-        eps: norms are clamped to at least ``eps`` before dividing.
+        eps: as in :func:`vertex_normals`.
 
     Example:
         >>> faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -210,5 +227,4 @@ class VertexNormals(nn.Module):
                 f"vertices: expected device {self.corners.device} (the module's; call .to(device)), "
                 f"got {vertices.device}"
             )
-        normals = _face_normals(vertices, self.corners, self.mode == "ring", self.eps)
-        return _finish(_scatter_add(normals, self.corners, self.num_vertices), vertices.shape[0], self.eps)
+        return _vertex_normals(vertices, self.corners, self.mode == "ring", self.eps)

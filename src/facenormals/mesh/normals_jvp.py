@@ -12,6 +12,10 @@ for every vertex and every shape component. With :math:`c_f = (v_1 - v_0) \times
     \dot m_f = \frac{(I - m_f m_f^\top)\,\dot c_f}{\lVert c_f \rVert}, \quad
     \dot n_i = \frac{(I - n_i n_i^\top) \sum_{f \ni i} \dot m_f}{\lVert s_i \rVert}.
 
+A face with :math:`\lVert c_f \rVert < \varepsilon` (degenerate) has :math:`m_f = \dot m_f = 0`
+and a vertex with :math:`\lVert s_i \rVert < \varepsilon` has :math:`n_i = \dot n_i = 0`, as in
+:func:`~facenormals.mesh.vertex_normals` (whose gradient stops there).
+
 All ``K`` tangents are pushed at once; for a fixed basis the tangent edge differences
 :math:`\dot e_1, \dot e_2` are precomputed by :class:`VertexNormalsJacobian`. This is exact (it
 equals ``torch.func.jvp`` of ``vertex_normals``) and several times cheaper than vmapped autograd.
@@ -23,7 +27,7 @@ import torch
 from torch import Tensor, nn
 
 from facenormals.core.check import check_faces, check_finite, check_floating, check_positive, check_shape, check_tensor
-from facenormals.mesh.normals import _check_vertices, _cross
+from facenormals.mesh.normals import _check_vertices, _cross, _inverse_norm
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
 
@@ -55,8 +59,8 @@ def _jvp_one(
     v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
     e1, e2 = v1 - v0, v2 - v0  # (F, 3)
     c = _cross(e1, e2)  # exactly 0 for a degenerate face [a, b, b], as in vertex_normals
-    c_norm = c.norm(dim=1, keepdim=True).clamp_min(eps)  # (F, 1)
-    m = c / c_norm
+    c_inverse = _inverse_norm(c, eps)  # (F, 1); 0 below eps: ṁ = 0 there, whatever rounding leaves in ċ
+    m = c * c_inverse
     d_c = torch.empty_like(d_e1) if work is None else work  # a reused buffer avoids page faults
     for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
         # (ė1 × e2 + e1 × ė2)_i = ė1_j e2_k − ė1_k e2_j + e1_j ė2_k − e1_k ė2_j
@@ -67,17 +71,17 @@ def _jvp_one(
         out.addcmul_(d_e2[:, j], e1[:, k : k + 1], value=-1.0)
     along = d_c[:, 0] * m[:, 0:1]  # m · ċ, (F, K)
     along.addcmul_(d_c[:, 1], m[:, 1:2]).addcmul_(d_c[:, 2], m[:, 2:3])
-    d_m = d_c.addcmul_(m.unsqueeze(-1), along.unsqueeze(1), value=-1.0).div_(c_norm.unsqueeze(-1))
+    d_m = d_c.addcmul_(m.unsqueeze(-1), along.unsqueeze(1), value=-1.0).mul_(c_inverse.unsqueeze(-1))
     s = vertices.new_zeros(num_vertices, 3)
     d_s = vertices.new_zeros(num_vertices, 3, d_e1.shape[-1])
     for k in range(3):
         s.index_add_(0, corners[:, k], m)
         d_s.index_add_(0, corners[:, k], d_m)
-    s_norm = s.norm(dim=1, keepdim=True).clamp_min(eps)  # (N, 1)
-    n = s / s_norm
+    s_inverse = _inverse_norm(s, eps)  # (N, 1)
+    n = s * s_inverse
     along = d_s[:, 0] * n[:, 0:1]
     along.addcmul_(d_s[:, 1], n[:, 1:2]).addcmul_(d_s[:, 2], n[:, 2:3])
-    d_n = d_s.addcmul_(n.unsqueeze(-1), along.unsqueeze(1), value=-1.0).div_(s_norm.unsqueeze(-1))
+    d_n = d_s.addcmul_(n.unsqueeze(-1), along.unsqueeze(1), value=-1.0).mul_(s_inverse.unsqueeze(-1))
     return n, d_n
 
 

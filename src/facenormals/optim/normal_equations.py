@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from facenormals.core.check import check_floating, check_same_dtype_device, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_same_dtype_device, check_shape
 
 __all__ = ["normal_equations"]
 
@@ -25,6 +25,11 @@ def normal_equations(jacobian: Tensor, residuals: Tensor) -> tuple[Tensor, Tenso
     Returns:
         ``(JᵀJ, Jᵀr)``.
 
+    Raises:
+        ValueError: naming the argument on wrong shapes, a non-floating ``jacobian``, mismatched
+            dtypes or devices, or NaN or infinite values (one device synchronisation; not checked
+            under ``torch.compile`` or ``torch.func`` transforms).
+
     Shape:
         - jacobian: :math:`(B, M, P)`; residuals: :math:`(B, M)`
         - output: :math:`(B, P, P)` and :math:`(B, P)`
@@ -41,6 +46,7 @@ def normal_equations(jacobian: Tensor, residuals: Tensor) -> tuple[Tensor, Tenso
     check_shape(residuals, ["B", "M"], "residuals", dims)
     check_floating(jacobian, "jacobian")
     check_same_dtype_device(jacobian, "jacobian", residuals=residuals)
+    check_all_finite(jacobian=jacobian, residuals=residuals)  # NaN would spread through JᵀJ silently
     # rᵀJ rather than Jᵀr: a batched row-vector product reads J in its own layout (a transposed
     # matrix-vector product is several times slower on CPU).
     return gram(jacobian), (residuals.unsqueeze(1) @ jacobian).squeeze(1)
