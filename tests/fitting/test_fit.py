@@ -189,6 +189,24 @@ def test_bad_input(model, head):
         fit_head(obs.normal_maps, obs.landmarks, model, weights=FitWeights(focal_std=0))
 
 
+def test_intrinsics_and_initial_pose_that_are_not_floating_point_are_named(model, head):
+    """A bool prior fitted a focal length of 1.3 px and a bool translation a 200 px landmark error, both
+    CONVERGED; integer angles were blamed on the normal maps' x components."""
+    obs = render_oracle_views(model, head, [0.0], image_size=32)
+    angles, translation = obs.angles, obs.translation
+    for intrinsics in (obs.intrinsics.bool(), obs.intrinsics.long()):
+        with pytest.raises(ValueError, match=f"intrinsics: expected a floating-point tensor, got dtype {intrinsics.dtype}"):
+            fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=intrinsics)
+    cases = [((angles.bool(), translation), "initial_pose angles: expected a floating-point tensor, got dtype torch.bool"),
+             ((angles.long(), translation), "initial_pose angles: expected a floating-point tensor, got dtype torch.int64"),
+             ((angles, translation.bool()), "initial_pose translation: expected a floating-point tensor, got dtype torch.bool")]
+    for pose, match in cases:
+        with pytest.raises(ValueError, match=match):
+            fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, initial_pose=pose)
+    with pytest.raises(ValueError, match=r"initial_pose translation: expected shape \(V, 3\) or \(B, V, 3\)"):
+        fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, initial_pose=(angles, translation[..., :2]))
+
+
 def test_options_that_silently_dropped_the_normal_term_are_errors(model, head):
     # each of these used to fit a landmarks-only head (1 vertex or none in the normal term) and
     # report CONVERGED

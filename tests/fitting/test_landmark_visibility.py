@@ -136,6 +136,18 @@ def test_drop_hidden_landmarks_checks_its_inputs(model):
         drop_hidden_landmarks(points, found, model, K, (128, 128))
 
 
+def test_drop_hidden_landmarks_refuses_points_and_intrinsics_that_are_not_floating_point(model):
+    """Bool points pre-aligned a wrong head that silently dropped 18 of 24 detections; a bool prior read as f = 1."""
+    R, t = posed(20.0)
+    points, _ = project_points(model.mean[model.landmark_indices][None], R, t, K)
+    found = torch.ones(1, 24, dtype=torch.bool)
+    for bad in (points.bool(), points.long()):
+        with pytest.raises(ValueError, match=f"landmarks: expected a floating-point tensor, got dtype {bad.dtype}"):
+            drop_hidden_landmarks(bad, found, model, K, (128, 128))
+    with pytest.raises(ValueError, match="intrinsics: expected a floating-point tensor, got dtype torch.bool"):
+        drop_hidden_landmarks(points, found, model, K.bool(), (128, 128))
+
+
 def test_drop_hidden_landmarks_runs_where_the_model_is(device):
     """Inputs on the CPU (as ``predict_maps`` returns them), the model on ``device``: the work follows
     the model and the mask comes back next to ``found``, equal to the all-CPU result."""

@@ -377,6 +377,42 @@ def test_pose_inputs_are_checked_before_use():
         prealign_pose(torch.zeros(0, 4, 2), torch.zeros(4, 3), torch.zeros(0, 3))
 
 
+def test_pose_inputs_must_be_floating_point():
+    """Bool model points or intrinsics were cast to 0/1 and fitted a wrong pose (28.7 px), reported CONVERGED."""
+    model = builtin_head_model(dtype=torch.float64)
+    uv, _, _, K = observe(model, 10.0)
+    points = model.mean[model.landmark_indices]
+    cases = [((uv, points.bool(), K), "model_points: expected a floating-point tensor, got dtype torch.bool"),
+             ((uv, points.long(), K), "model_points: expected a floating-point tensor, got dtype torch.int64"),
+             ((uv, points, K.bool()), "intrinsics: expected a floating-point tensor, got dtype torch.bool"),
+             ((uv, points, K.long()), "intrinsics: expected a floating-point tensor, got dtype torch.int64"),
+             ((uv.bool(), points, K), "landmarks: expected a floating-point tensor, got dtype torch.bool")]
+    for args, match in cases:
+        with pytest.raises(ValueError, match=match):
+            prealign_pose(*args)
+    with pytest.raises(ValueError, match="model_normals: expected a floating-point tensor, got dtype torch.bool"):
+        prealign_pose(uv, points, K, model_normals=model.landmark_normals().bool())
+
+
+def test_pose_jacobian_refuses_non_finite_inputs():
+    """A NaN pose or an infinite focal length came back as NaN entries of the Jacobian."""
+    points, x, K = torch.randn(2, 4, 3) * 30, torch.tensor([[0.0, 0, 0, 0, 0, 500]] * 2), torch.tensor([[500.0, 64, 64]] * 2)
+    cases = [("x", 0, 0, float("nan")), ("intrinsics", 1, 0, float("inf")), ("points", 1, 2, -float("inf"))]
+    for name, b, i, value in cases:
+        args = {"points": points.clone(), "x": x.clone(), "intrinsics": K.clone()}
+        args[name].view(2, -1)[b, i] = value
+        with pytest.raises(ValueError, match=f"{name}: expected finite values, got 1 NaN or infinite entries"):
+            landmark_pose_jacobian(**args)
+
+
+def test_pose_jacobian_of_no_views_or_no_points_is_empty():
+    """B = 0 or L = 0 crashed on reshaping 0 elements; the Jacobian is then empty, (0, 2L, 6) or (B, 0, 6)."""
+    points, x, K = torch.zeros(2, 4, 3), torch.tensor([[0.0, 0, 0, 0, 0, 500]] * 2), torch.tensor([[500.0, 64, 64]] * 2)
+    assert landmark_pose_jacobian(points[:0], x[:0], K[:0]).shape == (0, 8, 6)
+    assert landmark_pose_jacobian(points[:0], x[:0], K[:0], torch.ones(0, 4, dtype=torch.bool)).shape == (0, 8, 6)
+    assert landmark_pose_jacobian(points[:, :0], x, K).shape == (2, 0, 6)
+
+
 @pytest.mark.parametrize("robust_scale", [None, 3.0])
 def test_the_eye_corners_alone_are_not_fitted_facing_away(robust_scale):
     """Four nearly coplanar landmarks fit a pose mirrored through their plane about as well as the true

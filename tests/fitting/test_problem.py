@@ -183,6 +183,33 @@ def test_problem_checks_its_inputs():
         HeadFitProblem(model, *args, vertex_subset=torch.ones(5, dtype=torch.bool))
 
 
+def test_problem_refuses_non_float_inputs_empty_batches_and_a_non_model():
+    """A bool prior became [1, 1, 1] and bool or integer landmarks were fitted as they came; an empty
+    batch failed deep inside (``max()`` of no visible vertices)."""
+    model = small_model()
+    obs = render_oracle_views(model, model.sample_shape_coeffs(1, generator=torch.Generator().manual_seed(2)), [0.0],
+                              image_size=32)
+    args = [obs.normal_maps, obs.landmarks, obs.landmark_mask, obs.intrinsics]
+    cases = [
+        (1, obs.landmarks.bool(), "landmarks: expected a floating-point tensor, got dtype torch.bool"),
+        (1, obs.landmarks.long(), "landmarks: expected a floating-point tensor, got dtype torch.int64"),
+        (3, obs.intrinsics.bool(), "intrinsics_prior: expected a floating-point tensor, got dtype torch.bool"),
+        (3, obs.intrinsics.long(), "intrinsics_prior: expected a floating-point tensor, got dtype torch.int64"),
+    ]
+    for position, value, match in cases:
+        bad = list(args)
+        bad[position] = value
+        with pytest.raises(ValueError, match=match):
+            HeadFitProblem(model, *bad)
+    for empty, shape in (([a[:0] for a in args], r"\(0, 1, 3, 32, 32\)"),  # no subject
+                         ([a[:, :0] for a in args], r"\(1, 0, 3, 32, 32\)")):  # a subject without views
+        with pytest.raises(ValueError, match="normal_maps: expected at least one subject, one view and one pixel, "
+                                             f"got shape {shape}"):
+            HeadFitProblem(model, *empty)
+    with pytest.raises(ValueError, match="model: expected a MorphableModel, got NoneType"):
+        HeadFitProblem(None, *args)
+
+
 def test_huber_scale_is_in_units_of_the_normals_whatever_the_view_weight():
     problem, x = two_subject_problem()
     reference = problem.update_robust_weights(x, 0.1).clone()

@@ -146,6 +146,20 @@ def test_fit_inputs_checks_its_inputs(oracle):
         fit_inputs(maps, model)
 
 
+def test_fit_inputs_refuses_maps_that_are_not_floating_point(oracle):
+    """Bool landmarks were fitted as 0/1 pixels, integer normal maps truncated to an empty map."""
+    model = oracle[0]
+    g = torch.Generator().manual_seed(0)
+    maps = NetworkMaps(torch.zeros(1, 3, 128, 128), torch.zeros(1, 24, 128, 128),
+                       torch.rand(1, 24, 2, generator=g) * 128, torch.ones(1, 24, dtype=torch.bool))
+    for field, value in (("landmarks", maps.landmarks.bool()), ("landmarks", maps.landmarks.long()),
+                         ("normal_maps", maps.normal_maps.long())):
+        with pytest.raises(ValueError, match=f"maps.{field}: expected a floating-point tensor, got dtype {value.dtype}"):
+            fit_inputs(dataclasses.replace(maps, **{field: value}), model)
+    with pytest.raises(ValueError, match="model: expected a MorphableModel, got str"):
+        fit_inputs(maps, "builtin")
+
+
 def test_fit_inputs_leave_out_the_landmarks_not_found(oracle):
     """Finite points marked found=False went into the fit (params.json wrote them as None)."""
     model = oracle[0]
@@ -179,6 +193,30 @@ def test_landmark_channels_are_matched_by_name(oracle):
     unknown.landmark_names = ["glabella"] + model.landmark_names[1:]
     with pytest.raises(ValueError, match="glabella"):
         reconstruct_views(torch.zeros(1, 3, 128, 128), net, unknown, mirror=False)
+
+
+def test_a_model_or_reconstruction_of_the_wrong_type_is_named(oracle, tmp_path):
+    """Both were AttributeErrors from deep inside; nothing is written."""
+    with pytest.raises(ValueError, match="model: expected a MorphableModel, got NoneType"):
+        landmark_channels(None)
+    with pytest.raises(ValueError, match="rec: expected a Reconstruction, got NoneType"):
+        write_reconstruction(None, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    with pytest.raises(ValueError, match="model: expected a MorphableModel, got NoneType"):
+        reconstruct_views(torch.rand(1, 3, 16, 16), net, None)
+
+
+def test_reconstruct_views_without_crops_names_the_crops(monkeypatch):
+    """No crops: the error named fit_head's normal_maps, of a shape the caller never gave."""
+    from facenormals.reconstruct import pipeline
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    monkeypatch.setattr(pipeline, "predict_maps", lambda *a, **k: pytest.fail("ran the network on no crops"))
+    for crops in (torch.rand(0, 3, 16, 16), torch.rand(1, 3, 0, 0)):
+        with pytest.raises(ValueError, match=r"crops: expected at least one view of at least one pixel, got shape "
+                                             rf"\({crops.shape[0]}, 3, {crops.shape[2]}, {crops.shape[3]}\)"):
+            reconstruct_views(crops, net, builtin_head_model())
 
 
 def test_write_reconstruction_files_and_params(oracle, tmp_path):

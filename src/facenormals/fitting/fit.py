@@ -396,7 +396,9 @@ def fit_head(
     normal_maps, landmarks = normal_maps.to(dtype), landmarks.to(dtype)
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
-    intrinsics = _as_views(intrinsics, "intrinsics", [3], views).to(dtype)
+    intrinsics = _as_views(intrinsics, "intrinsics", [3], views)
+    check_floating(intrinsics, "intrinsics")  # a bool prior read as f = 1 px and fitted a garbage head
+    intrinsics = intrinsics.to(dtype)
     check_finite(intrinsics, "intrinsics")
     if not bool((intrinsics[..., 0] > 0).all()):
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[..., 0].min().item():g}")
@@ -427,7 +429,11 @@ def fit_head(
         pre_rms = pose.rms_px.reshape(B, V)
         _warn_unconverged_prealignment(pose.status.reshape(B, V), pre_rms)
     else:
-        angles, translation = (_as_views(p, n, [3], views).to(dtype) for p, n in zip(initial_pose, ("angles", "translation")))
+        angles, translation = (_as_views(p, f"initial_pose {n}", [3], views)
+                               for p, n in zip(initial_pose, ("angles", "translation")))
+        check_floating(angles, "initial_pose angles")  # integer angles truncate, a bool translation is 1 mm
+        check_floating(translation, "initial_pose translation")
+        angles, translation = angles.to(dtype), translation.to(dtype)
         check_finite(angles, "initial_pose angles")
         check_finite(translation, "initial_pose translation")
         pre_rms = torch.full((B, V), float("nan"), dtype=dtype, device=device)

@@ -143,6 +143,8 @@ def drop_hidden_landmarks(landmarks: Tensor, found: Tensor, model: MorphableMode
                          f"{model.name!r}, got shape {tuple(landmarks.shape)}")
     if found.dtype != torch.bool:
         raise ValueError(f"found: expected a bool tensor, got dtype {found.dtype}")
+    check_floating(landmarks, "landmarks")  # bool or integer points pre-aligned a wrong head that hid most of them
+    check_floating(intrinsics, "intrinsics")
     out_device = found.device
     dtype, device = model.mean.dtype, model.mean.device  # the inputs follow the model (e.g. onto the CPU)
     landmarks, intrinsics = landmarks.to(device=device, dtype=dtype), intrinsics.to(device=device, dtype=dtype)

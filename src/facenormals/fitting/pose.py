@@ -14,7 +14,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_same_dtype_device, check_shape, check_tensor
+from facenormals.core.check import (check_all_finite, check_finite, check_floating, check_same_dtype_device, check_shape,
+                                    check_tensor)
 from facenormals.fitting.robust import cauchy_weights, check_scale
 from facenormals.geometry import euler_to_rotation_matrix
 from facenormals.geometry.rotation import _euler, _rotation
@@ -71,7 +72,7 @@ def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: 
 
     Shape:
         - points: :math:`(B, L, 3)`; x: :math:`(B, 6)`; intrinsics: :math:`(B, 3)`; mask: :math:`(B, L)`
-        - output: :math:`(B, 2L, 6)`
+        - output: :math:`(B, 2L, 6)` (empty for ``B = 0`` or ``L = 0``)
 
     Example:
         >>> landmark_pose_jacobian(torch.zeros(1, 4, 3), torch.tensor([[0.0, 0, 0, 0, 0, 500]]),
@@ -83,6 +84,7 @@ def landmark_pose_jacobian(points: Tensor, x: Tensor, intrinsics: Tensor, mask: 
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
     check_floating(points, "points")
     check_same_dtype_device(points, "points", x=x, intrinsics=intrinsics)
+    check_all_finite(points=points, x=x, intrinsics=intrinsics)  # NaN or inf would come back as NaN entries
     if mask is not None:
         check_shape(mask, ["B", "L"], "mask", dims)
         if mask.dtype != torch.bool:
@@ -132,7 +134,7 @@ def _jacobian_at(x: Tensor, R: Tensor, camera: Tensor, z: Tensor, intrinsics: Te
     J = (intrinsics[:, None, 0] / z)[..., None, None] * (d_camera[..., :2, :] - ratio * d_camera[..., 2:3, :])
     if mask is not None:
         J = torch.where(mask[..., None, None], J, torch.zeros((), dtype=J.dtype, device=J.device))
-    return J.reshape(J.shape[0], -1, 6)
+    return J.flatten(1, 2)  # (B, 2L, 6); a reshape to (B, -1, 6) cannot infer -1 for B = 0 or L = 0
 
 
 class _LandmarkTerms:
@@ -450,7 +452,9 @@ def prealign_pose(
     if dims["B"] < 1:
         raise ValueError(f"landmarks: expected at least one view, got shape {tuple(landmarks.shape)}")
     model_points = _per_view(model_points, "model_points", dims)
+    check_floating(model_points, "model_points")  # bool or integer points fitted a wrong pose, "converged"
     check_shape(intrinsics, ["B", 3], "intrinsics", dims)
+    check_floating(intrinsics, "intrinsics")
     check_finite(intrinsics, "intrinsics")
     if not bool((intrinsics[:, 0] > 0).all()):
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[:, 0].min().item():g}")

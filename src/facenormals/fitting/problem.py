@@ -142,14 +142,21 @@ class HeadFitProblem:
         view_weights: Tensor | None = None,
         vertex_subset: Tensor | None = None,
     ) -> None:
+        if not isinstance(model, MorphableModel):
+            raise ValueError(f"model: expected a MorphableModel, got {type(model).__name__}")
         dims = check_shape(normal_maps, ["B", "V", 3, "H", "W"], "normal_maps")
         check_floating(normal_maps, "normal_maps")
+        if min(normal_maps.shape) < 1:  # nothing to fit; the ring and visibility layout would fail deep inside
+            raise ValueError(f"normal_maps: expected at least one subject, one view and one pixel, got shape "
+                             f"{tuple(normal_maps.shape)}")
         views = {"B": dims["B"], "V": dims["V"]}
         check_shape(landmarks, ["B", "V", model.landmark_indices.shape[0], 2], "landmarks", views)
+        check_floating(landmarks, "landmarks")  # bool or integer landmarks would fit silently
         check_shape(landmark_mask, ["B", "V", model.landmark_indices.shape[0]], "landmark_mask", views)
         if landmark_mask.dtype != torch.bool:
             raise ValueError(f"landmark_mask: expected a bool tensor, got dtype {landmark_mask.dtype}")
         check_shape(intrinsics_prior, ["B", "V", 3], "intrinsics_prior", views)
+        check_floating(intrinsics_prior, "intrinsics_prior")  # a bool prior read as f = u0 = v0 = 1
         # NaN maps would read as background and NaN landmarks as zero-cost: name them instead
         check_all_finite(normal_maps=normal_maps, intrinsics_prior=intrinsics_prior)
         landmark_mask = landmark_mask & torch.isfinite(landmarks).all(-1)  # NaN marks a missing landmark

@@ -189,6 +189,12 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
                        seconds=time.perf_counter() - start)
 
 
+def _check_model(model: object) -> None:
+    """Raise ``ValueError`` naming ``model`` unless it is a :class:`~facenormals.models.MorphableModel`."""
+    if not isinstance(model, MorphableModel):
+        raise ValueError(f"model: expected a MorphableModel, got {type(model).__name__}")
+
+
 def landmark_channels(model: MorphableModel) -> list[int]:
     """The network's landmark channel of each of ``model``'s landmarks, matched by name.
 
@@ -200,6 +206,7 @@ def landmark_channels(model: MorphableModel) -> list[int]:
         >>> tuple(landmark_channels(builtin_head_model())[:4])
         (0, 1, 2, 3)
     """
+    _check_model(model)
     missing = [name for name in model.landmark_names if name not in LANDMARK_NAMES]
     if missing:
         raise ValueError(f"model: landmarks {missing} of model {model.name!r} are not among the network's "
@@ -259,7 +266,10 @@ def fit_inputs(maps: NetworkMaps, model: MorphableModel, focal: float = DEFAULT_
     dims = check_shape(maps.normal_maps, ["V", 3, "S", "S"], "maps.normal_maps")
     check_shape(maps.landmarks, ["V", "C", 2], "maps.landmarks", dims)
     check_shape(maps.found, ["V", "C"], "maps.found", dims)
+    check_floating(maps.normal_maps, "maps.normal_maps")  # integer maps would truncate the unit normals to 0
+    check_floating(maps.landmarks, "maps.landmarks")  # bool or integer points would pre-align a wrong head
     V, S = dims["V"], dims["S"]
+    _check_model(model)
     require_pose_landmarks(model)
     if not check_nonnegative(focal, "focal") > 0:
         raise ValueError(f"focal: expected a positive focal length in pixels, got {focal}")
@@ -318,6 +328,9 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     fit_options.setdefault("weights", network_fit_weights(net))
     dims = check_shape(crops, ["V", 3, "S", "S"], "crops")
     V, S = dims["V"], dims["S"]
+    if V < 1 or S < 1:  # fit_head would name its normal_maps instead
+        raise ValueError(f"crops: expected at least one view of at least one pixel, got shape {tuple(crops.shape)}")
+    _check_model(model)
     if maps is None:
         maps = predict_maps(net, crops, mirror=mirror)
     else:
@@ -450,6 +463,8 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
     once all are written, so an interrupted or failed run never leaves a half-written file nor a mix
     of old and new files; view pictures of an earlier run with more photos are removed.
     """
+    if not isinstance(rec, Reconstruction):
+        raise ValueError(f"rec: expected a Reconstruction, got {type(rec).__name__}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     staged = _Staged()
