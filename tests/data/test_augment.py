@@ -77,3 +77,33 @@ def test_the_largest_ranges_and_lists_are_accepted():
     aug = PhotoAugmentation(blur_probability=1, blur_sigma=[10, 10], noise_probability=0, noise_std=[0, 1])
     assert aug.blur_sigma == (10.0, 10.0) and aug.noise_std == (0.0, 1.0)
     assert aug(torch.rand(1, 3, 64, 64)).shape == (1, 3, 64, 64)
+
+
+def _spoiled(value, shape=(2, 3, 8, 8)):
+    images = torch.rand(shape)
+    images.view(-1)[5] = value
+    return images
+
+
+@pytest.mark.parametrize(
+    "images, match",
+    [
+        (_spoiled(float("nan")), "images: expected finite values, got 1 NaN or infinite entries"),
+        (_spoiled(float("inf")), "images: expected finite values, got 1 NaN or infinite entries"),
+        (_spoiled(float("-inf"), (3, 8, 8)), "images: expected finite values, got 1 NaN or infinite entries"),
+        (torch.rand(2, 3, 8, 8) * 255, r"images: expected RGB values in \[0, 1\] \(an 8-bit image / 255\), got values in \[.*\]"),
+        (_spoiled(-0.5), r"images: expected RGB values in \[0, 1\] .*got values in \[-0.5, "),
+    ],
+)
+@pytest.mark.parametrize("probability", [0.0, 1.0])
+def test_non_finite_or_0_255_images_are_refused(images, match, probability):
+    """Regression: a NaN pixel stayed NaN, and inf or 0-255 values were silently clamped to 1 (white)."""
+    aug = PhotoAugmentation(blur_probability=probability, noise_probability=probability)
+    with pytest.raises(ValueError, match=match):
+        aug(images)
+
+
+def test_the_ends_of_the_unit_range_are_accepted():
+    images = torch.zeros(1, 3, 8, 8)
+    images[..., :4] = 1.0
+    assert torch.equal(PhotoAugmentation(blur_probability=0.0, noise_probability=0.0)(images), images)

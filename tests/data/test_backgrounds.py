@@ -145,3 +145,10 @@ def test_bad_background_arguments():
             random_background(rng, size)
     with pytest.raises(ValueError, match=r"photo_probability: expected a probability in \[0, 1\], got 1.5"):
         random_background(rng, (8, 8), photo_probability=1.5)
+
+
+@pytest.mark.parametrize("rng", [0, None, np.random.RandomState(0)])
+def test_an_rng_that_is_no_generator_is_named(rng):
+    """Regression: random_background(0) and random_background(None) failed with an AttributeError."""
+    with pytest.raises(ValueError, match=f"rng: expected a numpy.random.Generator .*, got {type(rng).__name__} "):
+        random_background(rng)

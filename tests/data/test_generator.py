@@ -478,3 +478,13 @@ def test_visibility_rules():
     visible = generator._visibility(pixels, np.full((1, len(cases)), 400.0, np.float32),
                                     np.array([[500.0, 63.5, 63.5]], np.float32), zbuffer, labels)
     assert visible[0].tolist() == [c[3] for c in cases]
+
+
+@pytest.mark.parametrize("model", [None, 3, torch.zeros(3)])
+def test_a_model_of_the_wrong_type_is_named_model(model):
+    """Regression: SyntheticHeadGenerator(None) raised load_model's error, naming its `spec`."""
+    from facenormals.data import SyntheticHeadGenerator
+
+    with pytest.raises(ValueError, match=r"^model: expected a MorphableModel or a spec for load_model .*, got "
+                                         f"{type(model).__name__} "):
+        SyntheticHeadGenerator(model)

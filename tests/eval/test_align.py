@@ -137,6 +137,27 @@ def test_apply_similarity_names_a_mismatched_dtype():
         apply_similarity(points, torch.ones(1, dtype=torch.float64), torch.eye(3)[None], torch.zeros(1, 3, dtype=torch.float64))
 
 
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (dict(s=torch.tensor([float("nan")])), "s: expected finite values, got 1 NaN or infinite entries"),
+        (dict(s=torch.tensor([-2.0])), r"s: expected scales > 0, got 1 of 1 <= 0 \(smallest -2\)"),
+        (dict(s=torch.tensor([0.0])), "s: expected scales > 0"),
+        (dict(rotation=5 * torch.eye(3)[None]), "rotation: expected rotation matrices, orthonormal with det \\+1"),
+        (dict(rotation=torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None]), "rotation: expected rotation matrices"),
+        (dict(rotation=torch.full((1, 3, 3), float("nan"))), "rotation: expected finite values"),
+        (dict(translation=torch.tensor([[0.0, float("inf"), 0.0]])), "translation: expected finite values"),
+    ],
+)
+def test_apply_similarity_refuses_a_transform_that_is_not_a_similarity(change, match):
+    """Regression: a NaN scale mapped every point to NaN, and a negative scale or a matrix 5 I that
+    is no rotation were applied silently."""
+    args = dict(points=torch.ones(1, 2, 3), s=torch.tensor([1.0]), rotation=torch.eye(3)[None], translation=torch.zeros(1, 3))
+    args.update(change)
+    with pytest.raises(ValueError, match=match):
+        apply_similarity(**args)
+
+
 def test_three_points_in_a_plane_are_enough():
     source = torch.tensor([[[0.0, 0, 0], [10, 0, 0], [0, 5, 0]]], dtype=torch.float64)
     R = torch.from_numpy(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix())[None]

@@ -311,6 +311,20 @@ def test_shares_vertex_order_checks_its_arguments():
             shares_vertex_order(quad, quad, min_shared=share)
 
 
+@pytest.mark.parametrize("faces, name, match", [
+    (torch.tensor([[-1, -2, -3], [0, 2, 3]]), "faces", r"\[-3, 3\]"),
+    (torch.tensor([[0, 1, 2], [0, 2, -1]]), "reference_faces", r"\[-1, 2\]"),
+    (torch.tensor([[0, 1, 2], [0, 2, 2**40]]), "faces", r"\[0, 1099511627776\]"),
+])
+def test_shares_vertex_order_refuses_indices_that_are_no_vertices(faces, name, match):
+    """Regression: faces [[-1, -2, -3], [0, 2, 3]] shared half of a quad's edges (True with
+    min_shared=0.5): negative indices made edge keys that collide with real edges."""
+    quad = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    args = (faces, quad) if name == "faces" else (quad, faces)
+    with pytest.raises(ValueError, match=rf"^{name}: expected vertex indices in \[0, 2\*\*31\), got values in {match}"):
+        shares_vertex_order(*args, min_shared=0.5)
+
+
 def cm_head_with_shoulders(vertices, faces):
     """A head in centimetres (vertices / 10) with a large triangle below it (shoulders): the whole mesh
     spans more than 50 units, as a big ICT identity in cm does (47.5 for the mean head, 39-58)."""

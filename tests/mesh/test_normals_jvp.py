@@ -171,3 +171,25 @@ def test_half_precision_gives_zero_normals_at_unused_vertices(dtype):
     n32, dn32 = vertex_normals_jvp(vertices, faces, tangents)
     assert_close(n.float(), n32, atol=1e-2, rtol=1e-2)
     assert_close(dn.float(), dn32, atol=3e-2, rtol=3e-2)
+
+
+@pytest.mark.parametrize("vertex_dtype, basis_dtype", [(torch.float32, torch.float64), (torch.float64, torch.float32),
+                                                       (torch.float32, torch.float16)])
+def test_mixed_float_dtypes_are_refused(vertex_dtype, basis_dtype):
+    """Regression: float32 vertices with float64 tangents (or a float64 basis) were silently rounded,
+    where the rest of the library raises ValueError for mixed dtypes."""
+    v, faces = open_mesh(vertex_dtype)
+    basis = torch.ones(2, *v.shape, dtype=basis_dtype)
+    with pytest.raises(ValueError, match=f"tangents: expected dtype {vertex_dtype} \\(the dtype of vertices\\), got {basis_dtype}"):
+        vertex_normals_jvp(v[None], faces, basis)
+    with pytest.raises(ValueError, match=f"tangents: expected dtype {vertex_dtype} \\(the dtype of vertices\\), got {basis_dtype}"):
+        vertex_normals_jvp(v[None], faces, basis[None])
+    jac = VertexNormalsJacobian(faces, basis)
+    match = f"vertices: expected dtype {basis_dtype} \\(the dtype of the module's basis\\), got {vertex_dtype}"
+    with pytest.raises(ValueError, match=match):
+        jac(v[None])
+    with pytest.raises(ValueError, match=match):
+        jac.subset(torch.tensor([0, 3]))(v[None])
+    n, dn = jac.to(vertex_dtype)(v[None])  # a converted module takes them
+    assert n.dtype == dn.dtype == vertex_dtype
+    assert jac.subset(torch.tensor([0, 3]))(v[None])[1].dtype == vertex_dtype

@@ -90,3 +90,38 @@ def test_permutation_of_non_integers_is_refused():
     out = UNetOutput(torch.zeros(1, 3, 4, 4), torch.zeros(1, 4, 4, 4), torch.zeros(1, 1, 4, 4))
     with pytest.raises(ValueError, match=r"permutation: expected a permutation of 0..3, got \[1.5, 0, 3, 2\]"):
         mirror_output(out, [1.5, 0, 3, 2])
+
+
+def test_mirror_output_names_an_output_that_is_not_a_unet_output():
+    """Regression: a plain tuple failed with an AttributeError."""
+    out = UNetOutput(torch.zeros(1, 3, 4, 4), torch.zeros(1, 2, 4, 4), torch.zeros(1, 1, 4, 4))
+    with pytest.raises(ValueError, match="output: expected a UNetOutput, got tuple"):
+        mirror_output(tuple(out), [1, 0])
+
+
+@pytest.mark.parametrize("field", ["normals", "landmarks", "foreground_logits"])
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool])
+def test_mirror_output_refuses_integer_fields(field, dtype):
+    """Regression: integer or bool maps were mirrored silently (and then averaged with rounding)."""
+    out = UNetOutput(torch.zeros(1, 3, 4, 4), torch.zeros(1, 2, 4, 4), torch.zeros(1, 1, 4, 4))
+    out = out._replace(**{field: getattr(out, field).to(dtype)})
+    with pytest.raises(ValueError, match=f"output.{field}: expected a floating-point tensor, got dtype {dtype}"):
+        mirror_output(out, [1, 0])
+
+
+def test_mirror_averaged_refuses_non_finite_images():
+    """Regression: one NaN pixel turned every map into NaN, silently."""
+    net = NormalLandmarkUNet(num_landmarks=4, base_channels=4, depth=2).eval()
+    images = torch.rand(1, 3, 8, 8)
+    images[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="images: expected finite values, got 1 NaN or infinite entries"):
+        mirror_averaged(net, images, [1, 0, 3, 2])
+
+
+def test_mirror_averaged_names_a_net_that_returns_no_unet_output():
+    """Regression: a network returning a plain tensor failed with an AttributeError."""
+    with pytest.raises(ValueError, match="net: expected a network returning a UNetOutput, got one returning Tensor"):
+        mirror_averaged(nn.Conv2d(3, 4, 1), torch.rand(1, 3, 8, 8), [1, 0, 3, 2])
+    with pytest.raises(ValueError, match="net: expected a network returning a UNetOutput, got one returning tuple"):
+        mirror_averaged(lambda x: tuple(NormalLandmarkUNet(num_landmarks=2, base_channels=4, depth=2)(x)),
+                        torch.rand(1, 3, 8, 8), [1, 0])

@@ -194,3 +194,40 @@ def test_weights_are_checked_against_the_architecture_before_it_is_built(tmp_pat
                 "architecture": {"base_channels": 4, "depth": 2, "num_landmarks": 10}, "state_dict": small,
                 "metadata": {}}, path)
     assert load_weights(path).num_landmarks == 10 and "cpu" in built
+
+
+@pytest.mark.parametrize(
+    "value, match",
+    [
+        (float("nan"), "got nan"),
+        (float("inf"), "got inf"),
+        (0.0, "got 0.0"),
+        (1.5, "got 1.5"),
+        ("0.3", "got '0.3'"),
+        ([0.1] * 3, r"expected one threshold per landmark channel \(24\), got 3"),
+    ],
+)
+def test_landmark_threshold_refuses_a_bad_metadata_entry(value, match):
+    """Regression: a NaN threshold set on a network's metadata came back as nan (and detected nothing)."""
+    from facenormals.nn.pretrained import landmark_threshold
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    net.metadata = {"landmark_threshold": value}
+    with pytest.raises(ValueError, match=re.escape("net.metadata['landmark_threshold']: ") + f".*{match}"):
+        landmark_threshold(net)
+    net.metadata = {"landmark_threshold": [0.3] * 24}
+    assert landmark_threshold(net).shape == (24,)
+    assert landmark_threshold(torch.nn.Linear(2, 2)) == 0.1  # no metadata: the default
+
+
+@pytest.mark.parametrize("device", ["bogus", "", "cuda:x", None, 3.5])
+def test_load_weights_names_a_bad_device(device):
+    """Regression: load_weights(None, device="bogus") ended in torch's RuntimeError."""
+    with pytest.raises(ValueError, match=re.escape(f"device: expected a torch device, e.g. 'cpu', 'cuda' or 'cuda:N', got {device!r}")):
+        load_weights(None, device=device)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_load_weights_names_an_unavailable_cuda_device():
+    with pytest.raises(ValueError, match="device: 'cuda' requested but this torch build .* has no CUDA device"):
+        load_weights(None, device="cuda")

@@ -82,6 +82,21 @@ def test_normal_map_follows_convention_fg_test():
     assert torch.equal(nmap.norm(dim=1, keepdim=True) > 0.5, out.foreground())
 
 
+@pytest.mark.parametrize(
+    "normals, logits, match",
+    [
+        (torch.zeros(1, 3, 8, 8), torch.zeros(1, 1, 8, 9), r"foreground_logits: expected shape \(B, 1, H, W\) with W=8"),
+        (torch.zeros(2, 3, 8, 8), torch.zeros(3, 1, 8, 8), r"foreground_logits: expected shape \(B, 1, H, W\) with B=2"),
+        (torch.zeros(1, 3, 8, 8), torch.zeros(1, 2, 8, 8), r"foreground_logits: expected shape \(B, 1, H, W\), got \(1, 2, 8, 8\)"),
+        (torch.zeros(1, 2, 8, 8), torch.zeros(1, 1, 8, 8), r"normals: expected shape \(B, 3, H, W\), got \(1, 2, 8, 8\)"),
+    ],
+)
+def test_normal_map_names_a_field_of_mismatched_shape(normals, logits, match):
+    """Regression: mismatched fields failed deep inside torch.where (a RuntimeError) or broadcast."""
+    with pytest.raises(ValueError, match=match):
+        UNetOutput(normals, torch.zeros(1, 2, 8, 8), logits).normal_map()
+
+
 def test_batch_size_one_train_equals_eval():
     # GroupNorm: no batch statistics, B=1 works in training mode and eval() changes nothing,
     # even with a 1x1 bottleneck (32x32 input at depth 5).

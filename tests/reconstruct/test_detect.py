@@ -39,6 +39,19 @@ def test_crop_square_bad_box_or_size(box, size, match):
         crop_square(np.zeros((10, 10, 3), np.uint8), box, size)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("side", [4.0, 32.0])  # sampled directly, and blurred first (downsampling)
+def test_crop_square_refuses_a_float_image_that_is_not_finite(dtype, value, side):
+    """Regression: a float image holding NaN gave a NaN crop, silently."""
+    image = np.full((40, 40, 3), 0.5, dtype)
+    image[2, 3, 1] = value
+    with pytest.raises(ValueError, match="image: expected finite values, got 1 NaN or infinite entries"):
+        crop_square(image, (0.0, 0.0, side), 8)
+    image[2, 3, 1] = 0.5
+    assert np.allclose(crop_square(image, (0.0, 0.0, side), 8), 0.5)
+
+
 def test_grouping_prefers_many_overlapping_hits():
     from facenormals.reconstruct.detect import _group
 

@@ -19,6 +19,13 @@ def test_overlay_bad_image():
         draw_alignment(np.zeros((4, 4, 3), np.float32), torch.zeros(1, 2))
 
 
+@pytest.mark.parametrize("shape", [(0, 0, 3), (0, 5, 3), (5, 0), (0, 0)])
+def test_overlay_refuses_an_empty_image(shape):
+    """Regression: an empty image failed inside cv2.resize (cv2.error)."""
+    with pytest.raises(ValueError, match=r"image: expected a non-empty image \(H, W >= 1\), got shape"):
+        draw_alignment(np.zeros(shape, np.uint8), torch.rand(3, 2))
+
+
 def test_normal_map_colours():
     nmap = torch.zeros(3, 1, 2)
     nmap[:, 0, 0] = torch.tensor([0.0, -1.0, 0.0])  # up (y is down)

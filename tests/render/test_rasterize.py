@@ -270,3 +270,37 @@ def test_a_triangle_listed_twice_in_another_corner_order_is_drawn_by_its_first_c
             rebuilt = interpolate_vertex_attributes(frags, faces, z[..., None])[0, 0]
             assert_close(rebuilt[mask], frags.depth[0][mask], atol=1e-5, rtol=0)
             assert torch.equal(frags.depth, rasterize_depth(uv, z, faces, (32, 32)))
+
+
+def _one_triangle_fragments(batch=2):
+    uv = torch.tensor([[[0.0, 0.0], [9.0, 0.0], [0.0, 9.0]]]).repeat(batch, 1, 1)
+    faces = torch.tensor([[0, 1, 2]])
+    return rasterize_triangles(uv, torch.ones(batch, 3), faces, (10, 10)), faces
+
+
+@pytest.mark.parametrize(
+    "field, make, match",
+    [
+        ("barycentric", lambda f: f.barycentric[0],
+         r"fragments.barycentric: expected shape \(B, H, W, 3\) \(4 dimensions\), got \(10, 10, 3\)"),
+        ("barycentric", lambda f: f.barycentric[..., :2], r"fragments.barycentric: expected shape \(B, H, W, 3\), got \(2, 10, 10, 2\)"),
+        ("barycentric", lambda f: f.barycentric[:0], r"fragments.barycentric: expected shape \(B, H, W, 3\) with B=2"),
+        ("barycentric", lambda f: f.barycentric.long(), "fragments.barycentric: expected a floating-point tensor, got dtype torch.int64"),
+        ("barycentric", lambda f: f.barycentric.double(),
+         r"fragments.barycentric: expected dtype torch.float32 \(the dtype of attributes\), got torch.float64"),
+        ("barycentric", lambda f: f.barycentric.clone().index_fill_(1, torch.tensor([1]), float("nan")),
+         "fragments.barycentric: expected finite values, got 60 NaN or infinite entries"),
+        ("face_index", lambda f: f.face_index.float(), "fragments.face_index: expected an integer tensor, got dtype torch.float32"),
+        ("face_index", lambda f: f.face_index.bool(), "fragments.face_index: expected an integer tensor, got dtype torch.bool"),
+    ],
+)
+def test_interpolate_vertex_attributes_checks_the_fragments(field, make, match):
+    """Regression: a (H, W, 3) barycentric broadcast silently, an integer one gave wrong values, a NaN
+    one NaN pixels, and a float face_index or a barycentric of last dimension 2 failed deep inside."""
+    import dataclasses
+
+    frags, faces = _one_triangle_fragments()
+    bad = dataclasses.replace(frags, **{field: make(frags)})
+    with pytest.raises(ValueError, match=match):
+        interpolate_vertex_attributes(bad, faces, torch.rand(2, 3, 2))
+

@@ -609,3 +609,36 @@ def test_a_damaged_checkpoint_is_named_and_never_resumed_or_exported(tmp_path, g
             export_weights(last, tmp_path / "w.pt")
         assert not (tmp_path / "w.pt").exists()
 
+
+
+@pytest.mark.parametrize("state, match", [
+    ([1, 2], "state: expected a dictionary (a training checkpoint), got list"),
+    ({"a": 1}, "state: expected a training checkpoint (format 'facenormals-train') or a weight file payload "
+               "(format 'facenormals-unet'), got format None"),
+    ({"format": "facenormals-train"}, "state: expected the run's settings as a dictionary ('config'), got NoneType"),
+])
+def test_save_checkpoint_refuses_a_state_load_checkpoint_would_refuse(tmp_path, state, match):
+    """Regression: save_checkpoint(path, [1, 2]) wrote a file that load_checkpoint then refused."""
+    from facenormals.training import save_checkpoint
+
+    with pytest.raises(ValueError, match=re.escape(match)):
+        save_checkpoint(tmp_path / "c.pt", state)
+    assert not (tmp_path / "c.pt").exists()
+
+
+@pytest.mark.parametrize("change, message", [
+    ("no model", "no model weights"),
+    ("negative step", "'step' is -3, expected an integer >= 0"),
+    ("model not a dict", r"the model weights \('model'\) are not a state dict"),
+    ("no optimizer", "no optimiser state"),
+])
+def test_save_checkpoint_refuses_a_training_state_without_its_entries(tmp_path, good_checkpoint, change, message):
+    from facenormals.training import save_checkpoint
+
+    state = torch.load(good_checkpoint, weights_only=True)
+    save_checkpoint(tmp_path / "good.pt", state)  # what train writes is taken
+    assert load_checkpoint(tmp_path / "good.pt")["step"] == state["step"]
+    _damage(state, change)
+    with pytest.raises(ValueError, match="state: a training checkpoint that load_checkpoint cannot read: " + message):
+        save_checkpoint(tmp_path / "c.pt", state)
+    assert not (tmp_path / "c.pt").exists()

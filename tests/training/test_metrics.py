@@ -191,3 +191,76 @@ def test_normal_angles_need_one_dtype_and_device():
     with pytest.raises(ValueError, match="target"):
         normal_angles(n.double(), n, mask)
     assert normal_angles(n, n, mask).tolist() == [0.0, 0.0]  # exactly: a × a is 0
+
+
+class _Spoiled(TinyHeads):
+    """TinyHeads with item ``bad`` spoiled: a NaN pixel, 0-255 values, a NaN visible landmark, no normals."""
+
+    def __init__(self, spoil, bad=5, count=6):
+        super().__init__(count, size=16)
+        item = dict(self.items[bad])
+        if spoil == "nan image":
+            item["image"] = item["image"].clone()
+            item["image"][0, 3, 3] = float("nan")
+        elif spoil == "image 255":
+            item["image"] = item["image"] * 255
+        elif spoil == "nan landmark":
+            item["landmarks"] = item["landmarks"].clone()
+            item["landmark_visible"] = item["landmark_visible"].clone()
+            item["landmarks"][2] = float("nan")
+            item["landmark_visible"][2] = True
+        elif spoil == "hidden nan landmark":
+            item["landmarks"] = item["landmarks"].clone()
+            item["landmark_visible"] = item["landmark_visible"].clone()
+            item["landmarks"][2] = float("nan")
+            item["landmark_visible"][2] = False
+        elif spoil == "nan normals":
+            item["normals"] = item["normals"].clone()
+            item["normals"][0, 8, 8] = float("nan")
+        elif spoil == "no normals":
+            for other in range(len(self.items)):
+                self.items[other] = {k: v for k, v in self.items[other].items() if k != "normals"}
+            item = self.items[bad]
+        self.items[bad] = item
+
+
+@pytest.mark.parametrize(
+    "spoil, match",
+    [
+        ("nan image", "dataset: expected finite image, got NaN or infinite values in sample 5"),
+        ("image 255", r"dataset: expected images of RGB values in \[0, 1\] \(an 8-bit image / 255\), got values in "
+                      r"\[.*\] in sample 5"),
+        ("nan landmark", "dataset: expected finite landmarks where visible, got NaN or infinite values in sample 5"),
+        ("nan normals", "dataset: expected finite normals, got NaN or infinite values in sample 5"),
+        ("no normals", "dataset: expected items with the keys image, normals, foreground, landmarks, landmark_visible; "
+                       "the items from sample 0 lack 'normals'"),
+    ],
+)
+@pytest.mark.parametrize("mirror", [False, True])
+def test_evaluate_network_checks_the_dataset(spoil, match, mirror):
+    """Regression: 0-255 images were scored (predict_maps refuses them), a NaN landmark gave
+    landmark_mean_px=nan, a NaN image an error naming the internal `predicted`, no normals a KeyError."""
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    with pytest.raises(ValueError, match=match):
+        evaluate_network(net, _Spoiled(spoil), batch_size=4, mirror=mirror)
+
+
+def test_evaluate_network_takes_a_nan_landmark_that_is_hidden():
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    metrics = evaluate_network(net, _Spoiled("hidden nan landmark"), batch_size=4, mirror=False)
+    assert math.isfinite(metrics.landmark_mean_px)
+
+
+@pytest.mark.parametrize(
+    "spoil, match",
+    [
+        ("nan image", "dataset: expected finite image, got NaN or infinite values in sample 5"),
+        ("image 255", r"dataset: expected images of RGB values in \[0, 1\]"),
+    ],
+)
+def test_calibrate_landmark_threshold_checks_the_dataset(spoil, match):
+    """Regression: one NaN pixel made every peak NaN, and the calibration returned ([0.5] * 24, 0.0)."""
+    net = NormalLandmarkUNet(base_channels=4, depth=2)
+    with pytest.raises(ValueError, match=match):
+        calibrate_landmark_threshold(net, _Spoiled(spoil), batch_size=4, mirror=False)
+    assert calibrate_landmark_threshold(net, _Spoiled("no normals"), batch_size=4, mirror=False)[1] >= 0

@@ -235,12 +235,16 @@ def random_background(rng: np.random.Generator, size: tuple[int, int] = (128, 12
     noise.
 
     Raises:
-        ValueError: unless ``size`` is two integers >= 1 and ``photo_probability`` lies in ``[0, 1]``.
+        ValueError: unless ``rng`` is a :class:`numpy.random.Generator`, ``size`` is two integers >= 1
+            and ``photo_probability`` lies in ``[0, 1]``.
 
     Example:
         >>> random_background(np.random.default_rng(0)).shape
         (128, 128, 3)
     """
+    if not isinstance(rng, np.random.Generator):  # a seed or None failed deep inside with an AttributeError
+        raise ValueError(f"rng: expected a numpy.random.Generator (e.g. numpy.random.default_rng(seed)), got "
+                         f"{type(rng).__name__} {rng!r}")
     h, w = check_image_size(size, "size")
     if not 0.0 <= photo_probability <= 1.0:
         raise ValueError(f"photo_probability: expected a probability in [0, 1], got {photo_probability}")

@@ -282,8 +282,11 @@ class SyntheticHeadGenerator:
             if any(t.device.type != "cpu" or (t.is_floating_point() and t.dtype != torch.float32) for t in tensors):
                 model = copy.deepcopy(model).float().cpu()  # the caller's model stays as it is
             self.model = model
-        else:
+        elif isinstance(model, (str, Path)):
             self.model = load_model(model)
+        else:  # load_model's error would name its own argument, `spec`
+            raise ValueError(f"model: expected a MorphableModel or a spec for load_model ('auto', 'ict', 'builtin' "
+                             f"or a path), got {type(model).__name__} {model!r}")
         self.model.check_millimetres()  # the scene (camera distance, hair, eyeballs) is built in mm
         self.config = config if config is not None else SynthConfig()
         if not isinstance(self.config, SynthConfig):

@@ -24,7 +24,16 @@ from typing import Mapping, Sequence
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_integer, check_same_dtype_device, check_shape
+from facenormals.core.check import (
+    check_all_finite,
+    check_finite,
+    check_floating,
+    check_integer,
+    check_same_dtype_device,
+    check_shape,
+    values_readable,
+)
+from facenormals.geometry.rotation import _check_rotation  # the tolerance of rotation_matrix_to_euler
 from facenormals.models.landmarks import IBUG68_OF_LANDMARK
 
 __all__ = ["DEFAULT_ALIGNMENT_LANDMARKS", "apply_similarity", "fit_similarity", "landmark_correspondences"]
@@ -130,6 +139,11 @@ def apply_similarity(points: Tensor, s: Tensor, rotation: Tensor, translation: T
         - points: :math:`(B, N, 3)`; s: :math:`(B,)`; rotation: :math:`(B, 3, 3)`;
           translation: :math:`(B, 3)`; output: :math:`(B, N, 3)`
 
+    Raises:
+        ValueError: on badly shaped inputs, mixed dtypes or devices, non-finite ``s``, ``rotation`` or
+            ``translation``, a scale ``<= 0`` or a matrix that is not a rotation (orthonormal with
+            det +1, to the tolerance of :func:`~facenormals.geometry.rotation_matrix_to_euler`).
+
     Example:
         >>> p = torch.ones(1, 2, 3)
         >>> apply_similarity(p, torch.tensor([2.0]), torch.eye(3)[None], torch.tensor([[0.0, 0, 1]]))
@@ -142,6 +156,12 @@ def apply_similarity(points: Tensor, s: Tensor, rotation: Tensor, translation: T
     check_shape(translation, ["B", 3], "translation", dims)
     check_floating(points, "points")
     check_same_dtype_device(points, "points", s=s, rotation=rotation, translation=translation)
+    # a NaN, zero or negative scale, or a matrix that is no rotation, would map every point silently wrong
+    check_all_finite(s=s, rotation=rotation, translation=translation)
+    if values_readable(s) and bool((s <= 0).any()):
+        raise ValueError(f"s: expected scales > 0, got {int((s <= 0).sum())} of {s.shape[0]} <= 0 "
+                         f"(smallest {float(s.min()):.3g})")
+    _check_rotation(rotation)
     return s[:, None, None] * (points @ rotation.transpose(1, 2)) + translation[:, None, :]
 
 

@@ -339,6 +339,10 @@ def shares_vertex_order(faces: Tensor, reference_faces: Tensor, min_shared: floa
     be wound the other way or split a quad along the other diagonal; a mesh whose vertices were
     reordered shares almost no edge.
 
+    Raises:
+        ValueError: naming ``faces`` or ``reference_faces`` unless it is ``(F, 3)`` integer vertex indices
+            in ``[0, 2**31)``, or ``min_shared`` unless it is a share in ``[0, 1]``.
+
     Example:
         >>> quad = torch.tensor([[0, 1, 2], [0, 2, 3]])
         >>> shares_vertex_order(torch.tensor([[1, 2, 0], [2, 3, 0]]), quad), shares_vertex_order(quad[:, [0, 2, 1]], quad)
@@ -355,6 +359,12 @@ def shares_vertex_order(faces: Tensor, reference_faces: Tensor, min_shared: floa
     if not 0.0 <= check_real(min_shared, "min_shared") <= 1.0:
         raise ValueError(f"min_shared: expected a share in [0, 1], got {min_shared!r}")
     faces, reference_faces = (torch.as_tensor(f).detach().cpu().long() for f in (faces, reference_faces))
+    for name, f in (("faces", faces), ("reference_faces", reference_faces)):
+        # a negative index would make an edge key of another edge (-1 * size - 2 ...) and match wrongly;
+        # beyond 2**31 the keys low * size + high overflow
+        if f.numel() and (int(f.min()) < 0 or int(f.max()) >= 2**31):
+            raise ValueError(f"{name}: expected vertex indices in [0, 2**31), got values in [{int(f.min())}, "
+                             f"{int(f.max())}]")
     if faces.numel() == 0 or reference_faces.numel() == 0:
         return False
     size = int(max(faces.max(), reference_faces.max())) + 1

@@ -26,7 +26,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_faces, check_finite, check_floating, check_positive, check_shape, check_tensor
+from facenormals.core.check import (
+    check_faces,
+    check_finite,
+    check_floating,
+    check_positive,
+    check_same_dtype_device,
+    check_shape,
+    check_tensor,
+)
 from facenormals.mesh.normals import _check_vertices, _cross, _inverse_norm
 
 __all__ = ["VertexNormalsJacobian", "vertex_normals_jvp"]
@@ -96,9 +104,14 @@ def _jvp(vertices: Tensor, faces: Tensor, d_e1: Tensor, d_e2: Tensor, eps: float
     return normals, jacobian
 
 
-def _check_device(vertices: Tensor, faces: Tensor) -> None:
+def _check_device(vertices: Tensor, faces: Tensor, basis_edges: Tensor) -> None:
+    """``vertices`` on the module's device and of its basis' dtype (a float64 basis with float32 vertices
+    was silently rounded, as torch would silently promote elsewhere; the rest of the library refuses it)."""
     if vertices.device != faces.device:
         raise ValueError(f"vertices: expected device {faces.device} (the module's), got {vertices.device}")
+    if vertices.dtype != basis_edges.dtype:
+        raise ValueError(f"vertices: expected dtype {basis_edges.dtype} (the dtype of the module's basis), got "
+                         f"{vertices.dtype}; convert the vertices, or the module with .to({vertices.dtype})")
 
 
 def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: float = 1e-12) -> tuple[Tensor, Tensor]:
@@ -108,7 +121,8 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
         vertices: mesh vertices.
         faces: triangles, counter-clockwise seen from outside.
         tangents: ``K`` directions of vertex motion, shared by the batch ``(K, N, 3)`` or per
-            element ``(B, K, N, 3)`` (e.g. the shape basis :math:`W_k`).
+            element ``(B, K, N, 3)`` (e.g. the shape basis :math:`W_k`), with the dtype and device
+            of ``vertices``.
         eps: the clamp of the norms, as in :func:`~facenormals.mesh.vertex_normals`.
 
     Returns:
@@ -132,8 +146,9 @@ def vertex_normals_jvp(vertices: Tensor, faces: Tensor, tangents: Tensor, eps: f
         check_shape(tangents, ["B", "K", vertices.shape[1], 3], "tangents", {"B": vertices.shape[0]})
     faces = faces.to(device=vertices.device, dtype=torch.long)
     check_floating(tangents, "tangents")
+    check_same_dtype_device(vertices, "vertices", tangents=tangents)  # not rounded or promoted silently
     check_finite(tangents, "tangents")
-    tangents = tangents.detach().to(device=vertices.device, dtype=vertices.dtype)
+    tangents = tangents.detach()
     if tangents.dim() == 3:
         d_e1, d_e2 = _tangent_edges(tangents, faces)
     else:
@@ -155,8 +170,8 @@ class _SubsetJacobian:
     @torch.no_grad()
     def __call__(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
         _check_vertices(vertices, self.num_vertices)
-        _check_device(vertices, self.faces)
-        d_e1, d_e2 = self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype)
+        _check_device(vertices, self.faces, self.d_e1)
+        d_e1, d_e2 = self.d_e1, self.d_e2
         if self._work is None or self._work.dtype != d_e1.dtype or self._work.device != d_e1.device:
             self._work = torch.empty_like(d_e1)
         normals = vertices.new_zeros(vertices.shape[0], self.size, 3)
@@ -173,7 +188,8 @@ class VertexNormalsJacobian(nn.Module):
     r"""Ring vertex normals and :math:`\partial n / \partial y` for a fixed basis ``(K, N, 3)``.
 
     Precomputes the basis' edge differences once, so each call costs two cross products per face
-    and component. See :func:`vertex_normals_jvp`.
+    and component. See :func:`vertex_normals_jvp`. The vertices must have the basis' dtype (or the
+    dtype the module was converted to, e.g. with ``.double()``) and the module's device.
 
     Shape:
         - forward: vertices :math:`(B, N, 3)` → normals :math:`(B, N, 3)`, Jacobian :math:`(B, N, 3, K)`
@@ -203,8 +219,8 @@ class VertexNormalsJacobian(nn.Module):
 
     def forward(self, vertices: Tensor) -> tuple[Tensor, Tensor]:
         _check_vertices(vertices, self.num_vertices)
-        _check_device(vertices, self.faces)
-        return _jvp(vertices, self.faces, self.d_e1.to(vertices.dtype), self.d_e2.to(vertices.dtype), self.eps)
+        _check_device(vertices, self.faces, self.d_e1)
+        return _jvp(vertices, self.faces, self.d_e1, self.d_e2, self.eps)
 
     def subset(self, vertex_index: Tensor) -> "_SubsetJacobian":
         """A callable giving normals and Jacobian rows of ``vertex_index`` ``(S,)`` only: ``(B, S, 3)``

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from facenormals.core.check import check_floating, check_shape
+from facenormals.core.check import check_finite, check_floating, check_shape
 from facenormals.models.landmarks import LANDMARK_NAMES, LANDMARK_PAIRS
 from facenormals.nn.unet import UNetOutput
 
@@ -59,9 +59,13 @@ def mirror_output(output: UNetOutput, permutation: Sequence[int]) -> UNetOutput:
         >>> all(torch.equal(a, b) for a, b in zip(twice, out))
         True
     """
+    if not isinstance(output, UNetOutput):  # a plain tuple has no .normals
+        raise ValueError(f"output: expected a UNetOutput, got {type(output).__name__}")
     dims = check_shape(output.normals, ["B", 3, "H", "W"], "output.normals")
     check_shape(output.landmarks, ["B", len(permutation), "H", "W"], "output.landmarks", dims)
     check_shape(output.foreground_logits, ["B", 1, "H", "W"], "output.foreground_logits", dims)
+    for field in UNetOutput._fields:  # the averages of mirror_averaged would round integer maps
+        check_floating(getattr(output, field), f"output.{field}")
     try:  # integers only: int() would truncate 1.5 to a valid index
         order = [operator.index(i) for i in permutation]
     except TypeError:
@@ -81,7 +85,7 @@ def mirror_averaged(net: nn.Module, images: Tensor, permutation: Sequence[int] |
 
     Args:
         net: a network returning :class:`~facenormals.nn.UNetOutput`.
-        images: :math:`(B, 3, H, W)` in ``[0, 1]``.
+        images: :math:`(B, 3, H, W)` in ``[0, 1]``, finite.
         permutation: landmark channel permutation (default: :func:`mirror_permutation` of the 24
             library landmarks).
 
@@ -93,9 +97,12 @@ def mirror_averaged(net: nn.Module, images: Tensor, permutation: Sequence[int] |
     """
     check_shape(images, ["B", 3, "H", "W"], "images")
     check_floating(images, "images")
+    check_finite(images, "images")  # one NaN pixel would turn every map into NaN
     if permutation is None:
         permutation = mirror_permutation()
     both = net(torch.cat([images, images.flip(-1)]))
+    if not isinstance(both, UNetOutput):
+        raise ValueError(f"net: expected a network returning a UNetOutput, got one returning {type(both).__name__}")
     if len(permutation) != both.landmarks.shape[1]:
         raise ValueError(f"permutation: expected one entry per landmark channel ({both.landmarks.shape[1]}), "
                          f"got {len(permutation)}")

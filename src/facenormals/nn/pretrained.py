@@ -27,8 +27,17 @@ def landmark_threshold(net: torch.nn.Module) -> float | torch.Tensor:
     """The network's calibrated landmark detection threshold (``metadata["landmark_threshold"]``), else 0.1.
 
     A float, or one threshold per landmark channel as an ``(L,)`` tensor when the weights carry a list.
+
+    Raises:
+        ValueError: naming ``net.metadata['landmark_threshold']`` unless it is a number in (0, 1) or
+            one per landmark channel (a NaN threshold would detect nothing, silently).
     """
-    value = getattr(net, "metadata", {}).get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD)
+    metadata = getattr(net, "metadata", {})
+    if not isinstance(metadata, dict):
+        raise ValueError(f"net.metadata: expected a dictionary, got {type(metadata).__name__}")
+    value = metadata.get("landmark_threshold", DEFAULT_LANDMARK_THRESHOLD)
+    channels = getattr(net, "num_landmarks", None)
+    check_threshold(value, channels if isinstance(channels, int) else None, "net.metadata['landmark_threshold']")
     return torch.tensor(value, dtype=torch.float32) if isinstance(value, (list, tuple)) else float(value)
 
 
@@ -143,6 +152,7 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
 
     Raises:
         FileNotFoundError: if the file does not exist.
+        ValueError: naming ``device`` when torch cannot read it as a device (or it is CUDA, unavailable).
         ValueError: if it is not a facenormals weight file, states an architecture outside
             ``ARCHITECTURE_LIMITS`` (checked, with the weights' shapes, before the network is built),
             does not match its architecture or holds NaN or infinite weights.
@@ -152,6 +162,7 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         >>> net.num_landmarks, net.training
         (24, False)
     """
+    _check_device(device)  # before the file is read: torch's RuntimeError would come after all the work
     path = pretrained_weights_path() if path is None else Path(path)
     payload = _read_payload(path)
     arch = payload["architecture"]
@@ -193,6 +204,16 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
     return net.to(device).eval()
+
+
+def _check_device(device: object) -> None:
+    """Raise ``ValueError`` naming ``device`` unless torch reads it as a device, and a CUDA one is available."""
+    try:
+        parsed = torch.device(device)  # type: ignore[arg-type]
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device: expected a torch device, e.g. 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: {device!r} requested but this torch build ({torch.__version__}) has no CUDA device")
 
 
 def check_threshold(value: object, channels: int | None, name: str = "metadata landmark_threshold") -> None:

@@ -78,6 +78,9 @@ class UNetOutput(NamedTuple):
                     [ 0.,  0.],
                     [-1.,  0.]])
         """
+        # mismatched fields would broadcast or fail deep inside torch.where
+        dims = check_shape(self.normals, ["B", 3, "H", "W"], "normals")
+        check_shape(self.foreground_logits, ["B", 1, "H", "W"], "foreground_logits", dims)
         mask = self.foreground(threshold)
         return torch.where(mask, self.normals, torch.zeros_like(self.normals))
 

@@ -176,6 +176,10 @@ def crop_square(image: np.ndarray, box: tuple[float, float, float], size: int = 
     Crop pixel ``(u, v)`` (centre convention of ``docs/conventions.md``) shows image point
     ``(x0 + (u + 0.5)·s − 0.5, y0 + (v + 0.5)·s − 0.5)`` with ``s = side / size``.
 
+    Raises:
+        ValueError: naming ``image`` unless it is a non-empty ``(H, W, 3)`` uint8, uint16, float32 or
+            float64 array (a float one finite), or naming ``box`` or ``size`` when they are invalid.
+
     Example:
         >>> img = np.arange(16, dtype=np.uint8).reshape(4, 4)[..., None].repeat(3, -1)
         >>> crop_square(img, (0.0, 0.0, 4.0), size=4)[..., 0].tolist() == img[..., 0].tolist()
@@ -187,6 +191,12 @@ def crop_square(image: np.ndarray, box: tuple[float, float, float], size: int = 
             or image.dtype not in (np.uint8, np.uint16, np.float32, np.float64)):
         raise ValueError(f"image: expected a non-empty uint8, uint16, float32 or float64 array (H, W, 3), got "
                          f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}")
+    # a NaN pixel would spread through the blur and the interpolation into a NaN crop, silently; a finite
+    # sum (float64: no overflow from float32 values) has no NaN or inf
+    if image.dtype.kind == "f" and not np.isfinite(image.sum(dtype=np.float64)):
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        if bad:
+            raise ValueError(f"image: expected finite values, got {bad} NaN or infinite entries")
     x0, y0, side = check_crop_box(box)
     if isinstance(size, bool) or not isinstance(size, int) or not 1 <= size <= MAX_CROP_SIZE:
         raise ValueError(f"size: expected an integer in [1, {MAX_CROP_SIZE}], got {size!r}")

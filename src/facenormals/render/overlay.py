@@ -79,6 +79,8 @@ def draw_alignment(
         img = np.repeat(img[..., None], 3, axis=2)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise ValueError(f"image: expected a uint8 (H, W, 3) or (H, W) array, got {img.dtype} {img.shape}")
+    if img.shape[0] < 1 or img.shape[1] < 1:  # cv2.resize fails on an empty image
+        raise ValueError(f"image: expected a non-empty image (H, W >= 1), got shape {img.shape}")
     out = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
     points = vertex_pixels.detach().cpu().double()
     if visible is not None:

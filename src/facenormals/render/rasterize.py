@@ -15,7 +15,6 @@ from torch import Tensor
 from facenormals.core.check import (
     check_all_finite,
     check_faces,
-    check_finite,
     check_floating,
     check_image_size,
     check_nonnegative,
@@ -277,11 +276,18 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
         raise ValueError(f"fragments: expected the Fragments of rasterize_triangles, got {type(fragments).__name__}")
     dims = check_shape(attributes, ["B", "N", "C"], "attributes")
     check_floating(attributes, "attributes")  # barycentric weights would round to 0 or 1
-    check_finite(attributes, "attributes")
     check_shape(fragments.face_index, ["B", "H", "W"], "fragments.face_index", dims)
+    index_dtype = fragments.face_index.dtype
+    if index_dtype.is_floating_point or index_dtype.is_complex or index_dtype == torch.bool:
+        raise ValueError(f"fragments.face_index: expected an integer tensor, got dtype {index_dtype}")
     if fragments.face_index.device != attributes.device:
-        raise ValueError(f"fragments: expected device {attributes.device} (the attributes'), got "
+        raise ValueError(f"fragments.face_index: expected device {attributes.device} (the device of attributes), got "
                          f"{fragments.face_index.device}")
+    # a (H, W, 3) or (B, H, W, 2) barycentric would broadcast or fail deep inside, an integer one round
+    check_shape(fragments.barycentric, ["B", "H", "W", 3], "fragments.barycentric", dims)
+    check_floating(fragments.barycentric, "fragments.barycentric")
+    check_same_dtype_device(attributes, "attributes", **{"fragments.barycentric": fragments.barycentric})
+    check_all_finite(attributes=attributes, **{"fragments.barycentric": fragments.barycentric})
     count = check_faces(faces, dims["N"])["F"]
     if fragments.face_index.numel() and int(fragments.face_index.max()) >= count:
         raise ValueError(f"faces: expected the {int(fragments.face_index.max()) + 1} or more triangles the fragments "
@@ -295,6 +301,6 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: Tensor, attribute
     corner = faces[face]  # (B, H, W, 3)
     b = torch.arange(batch, device=attributes.device).view(batch, 1, 1, 1)
     values = attributes[b, corner]  # (B, H, W, 3, C)
-    out = (values * fragments.barycentric.to(attributes.dtype)[..., None]).sum(-2)
+    out = (values * fragments.barycentric[..., None]).sum(-2)
     out = torch.where(fragments.mask[..., None], out, torch.zeros_like(out))
     return out.permute(0, 3, 1, 2).contiguous()

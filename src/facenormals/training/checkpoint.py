@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import torch
 from torch.utils.data import Dataset
@@ -18,7 +19,28 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     """Write ``state`` with :func:`torch.save` atomically and durably
     (:func:`~facenormals.core.files.atomic_write`): a run killed while saving, or a machine that
     goes down, keeps its previous checkpoint.
+
+    ``state`` is a training checkpoint (``"format": "facenormals-train"``) or the payload of a weight
+    file (:func:`export_weights`). A training checkpoint must hold the entries :func:`load_checkpoint`
+    reads (their values, e.g. NaN weights, are checked when it is read), so that no file is written
+    that cannot be resumed.
+
+    Raises:
+        ValueError: naming ``state`` when it is not a dictionary of either kind, or a training
+            checkpoint that lacks or mistypes an entry :func:`load_checkpoint` requires.
     """
+    if not isinstance(state, dict):
+        raise ValueError(f"state: expected a dictionary (a training checkpoint), got {type(state).__name__}")
+    kind = state.get("format")
+    if kind == "facenormals-train":
+        if not isinstance(state.get("config"), dict):
+            raise ValueError(f"state: expected the run's settings as a dictionary ('config'), got "
+                             f"{type(state.get('config')).__name__}")
+        _check_entries(state, lambda what: ValueError(f"state: a training checkpoint that load_checkpoint cannot "
+                                                      f"read: {what}"), values=False)
+    elif kind != WEIGHTS_FORMAT:
+        raise ValueError(f"state: expected a training checkpoint (format 'facenormals-train') or a weight file "
+                         f"payload (format {WEIGHTS_FORMAT!r}), got format {kind!r}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path) as part:
@@ -51,7 +73,8 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(state.get("config"), dict):  # every reader takes the run's settings from it
         raise ValueError(f"{path}: a facenormals training checkpoint without its settings ('config'); it cannot "
                          "be resumed or exported")
-    _check_entries(path, state)
+    _check_entries(state, lambda what: ValueError(f"{path}: corrupt checkpoint: {what}; it cannot be resumed or "
+                                                  "exported"))
     return state
 
 
@@ -59,13 +82,10 @@ def _is_count(value: object, low: int) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= low
 
 
-def _check_entries(path: Path, state: dict) -> None:
-    """Raise ``ValueError`` naming ``path`` and the entry when one a resume or an export reads is
-    missing, of the wrong type or not finite (a NaN model failed at the first step with advice to
+def _check_entries(state: dict, corrupt: Callable[[str], ValueError], values: bool = True) -> None:
+    """Raise ``corrupt(what)`` naming the entry when one a resume or an export reads is missing, of the
+    wrong type or (with ``values``) not finite (a NaN model failed at the first step with advice to
     resume from this same file; NaN averaged weights trained on and were exported)."""
-    def corrupt(what: str) -> ValueError:
-        return ValueError(f"{path}: corrupt checkpoint: {what}; it cannot be resumed or exported")
-
     for key, low in (("step", 0), ("samples_seen", 0), ("world_size", 1), ("num_landmarks", 0)):
         if key not in state:
             raise corrupt(f"no {key!r} entry")
@@ -81,7 +101,7 @@ def _check_entries(path: Path, state: dict) -> None:
         for name, value in weights.items():
             if not isinstance(value, torch.Tensor):
                 raise corrupt(f"the {what} ({key!r}) hold {name!r} of type {type(value).__name__}, not a tensor")
-            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            if values and value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise corrupt(f"the {what} ({key!r}) hold NaN or infinite values ({name}: "
                               f"{int((~torch.isfinite(value)).sum())} of {value.numel()})")
     optimizer = state.get("optimizer")
@@ -90,7 +110,7 @@ def _check_entries(path: Path, state: dict) -> None:
     if (not isinstance(optimizer, dict) or not isinstance(optimizer.get("state"), dict)
             or not isinstance(optimizer.get("param_groups"), list)):
         raise corrupt("the optimiser state ('optimizer') is not an optimiser state dict (state, param_groups)")
-    for index, entries in optimizer["state"].items():
+    for index, entries in (optimizer["state"].items() if values else ()):
         for name, value in (entries.items() if isinstance(entries, dict) else ()):
             if isinstance(value, torch.Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all()):
                 raise corrupt(f"the optimiser state ('optimizer') holds NaN or infinite values (parameter {index}, "

@@ -97,6 +97,63 @@ def normal_angles(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     return torch.rad2deg(angle)[mask[:, 0]]
 
 
+#: The keys of the dataset items each function reads.
+_EVALUATE_KEYS = ("image", "normals", "foreground", "landmarks", "landmark_visible")
+_CALIBRATE_KEYS = ("image", "landmark_visible")
+
+
+def _bad_samples(bad: Tensor, start: int) -> str:
+    """``"sample 7"`` or ``"samples 7, 9"``: the dataset indices of the ``True`` entries of ``bad`` ``(B,)``."""
+    index = [start + int(i) for i in torch.nonzero(bad).flatten()[:5]]
+    more = ", ..." if int(bad.sum()) > len(index) else ""
+    return ("sample " if len(index) == 1 else "samples ") + ", ".join(map(str, index)) + more
+
+
+def _check_batch(batch: object, start: int, keys: tuple[str, ...]) -> None:
+    """Raise ``ValueError`` naming ``dataset`` (and the sample index) unless a collated batch of items
+    ``start, start + 1, ...`` has ``keys``, a finite image in [0, 1] (as ``predict_maps`` takes) and,
+    where read, finite normals and landmarks (where visible). The net would otherwise score NaN or
+    0-255 images silently, or fail on an internal argument."""
+    if not isinstance(batch, dict):
+        raise ValueError(f"dataset: expected items that are dictionaries with the keys {', '.join(keys)}, got "
+                         f"{type(batch).__name__}")
+    missing = [key for key in keys if key not in batch]
+    if missing:
+        raise ValueError(f"dataset: expected items with the keys {', '.join(keys)}; the items from sample {start} "
+                         f"lack {', '.join(map(repr, missing))}")
+    image = batch["image"]
+    dims = check_shape(image, ["B", 3, "H", "W"], "dataset: the items' image")
+    check_floating(image, "dataset: the items' image")
+    visible = batch["landmark_visible"]
+    check_shape(visible, ["B", "L"], "dataset: the items' landmark_visible", dims)
+    if visible.dtype != torch.bool:
+        raise ValueError(f"dataset: the items' landmark_visible: expected a bool tensor, got dtype {visible.dtype}")
+    fields = {"image": image}
+    if "normals" in keys:
+        check_shape(batch["normals"], ["B", 3, "H", "W"], "dataset: the items' normals", dims)
+        check_floating(batch["normals"], "dataset: the items' normals")
+        check_shape(batch["foreground"], ["B", 1, "H", "W"], "dataset: the items' foreground", dims)
+        if batch["foreground"].dtype != torch.bool:
+            raise ValueError(f"dataset: the items' foreground: expected a bool tensor, got dtype "
+                             f"{batch['foreground'].dtype}")
+        landmarks = batch["landmarks"]
+        check_shape(landmarks, ["B", "L", 2], "dataset: the items' landmarks", dims)
+        fields["normals"] = batch["normals"]
+        fields["landmarks"] = torch.where(visible[..., None], landmarks, 0.0)  # a hidden one may be NaN
+    for name, x in fields.items():  # one synchronisation per field; these are evaluation paths
+        bad = ~torch.isfinite(x).flatten(1).all(1)
+        if bool(bad.any()):
+            where = " where visible" if name == "landmarks" else ""
+            raise ValueError(f"dataset: expected finite {name}{where}, got NaN or infinite values in "
+                             f"{_bad_samples(bad, start)}")
+    flat = image.flatten(1)
+    if flat.shape[1]:
+        bad = (flat.amin(1) < -1e-3) | (flat.amax(1) > 1.0 + 1e-3)  # 0-255 values find no landmark
+        if bool(bad.any()):
+            raise ValueError(f"dataset: expected images of RGB values in [0, 1] (an 8-bit image / 255), got values "
+                             f"in [{float(flat.min()):g}, {float(flat.max()):g}] in {_bad_samples(bad, start)}")
+
+
 @torch.no_grad()
 def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int = 32,
                      max_samples: int | None = None, threshold: float | Tensor | None = None, workers: int = 0,
@@ -122,7 +179,9 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         focal: the focal length prior of that pre-alignment, pixels.
 
     Raises:
-        ValueError: when ``model`` has landmarks the network does not predict, or the dataset is empty.
+        ValueError: when ``model`` has landmarks the network does not predict, or naming ``dataset`` when it
+            is empty or an item lacks a key above, holds an image that is not finite or not in [0, 1], or
+            non-finite normals or (visible) landmarks.
     """
     channels = None if model is None else landmark_channels(model)
     if threshold is None:
@@ -142,7 +201,8 @@ def evaluate_network(net: NormalLandmarkUNet, dataset: Dataset, batch_size: int 
         angles, errors = [], []
         agree = agree_posed = total = 0
         inter = union = 0
-        for batch in DataLoader(dataset, batch_size=batch_size, num_workers=workers):
+        for number, batch in enumerate(DataLoader(dataset, batch_size=batch_size, num_workers=workers)):
+            _check_batch(batch, number * batch_size, _EVALUATE_KEYS)
             image = batch["image"].to(device)
             out = mirror_averaged(net, image) if mirror else net(image)
             fg = batch["foreground"].to(device)
@@ -201,6 +261,10 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     Returns:
         ``(threshold, accuracy)``: the threshold (a list of one per channel with ``per_landmark``)
         with the most correct visibility decisions, and the fraction correct on ``dataset``.
+
+    Raises:
+        ValueError: naming ``dataset`` when it is empty, or an item lacks ``image`` or
+            ``landmark_visible`` or holds an image that is not finite or not in [0, 1].
     """
     if max_samples is not None:
         dataset = Subset(dataset, range(min(int(max_samples), len(dataset))))
@@ -218,7 +282,8 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     device = next(net.parameters()).device
     peaks, visible = [], []
     try:
-        for batch in DataLoader(dataset, batch_size=batch_size):
+        for number, batch in enumerate(DataLoader(dataset, batch_size=batch_size)):
+            _check_batch(batch, number * batch_size, _CALIBRATE_KEYS)
             image = batch["image"].to(device)
             maps = (mirror_averaged(net, image) if mirror else net(image)).landmarks.float()
             peaks.append(maps.flatten(2).amax(-1).cpu())
