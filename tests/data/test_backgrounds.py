@@ -1,4 +1,6 @@
 import importlib.util
+import re
+import struct
 
 import numpy as np
 import pytest
@@ -152,3 +154,69 @@ def test_an_rng_that_is_no_generator_is_named(rng):
     """Regression: random_background(0) and random_background(None) failed with an AttributeError."""
     with pytest.raises(ValueError, match=f"rng: expected a numpy.random.Generator .*, got {type(rng).__name__} "):
         random_background(rng)
+
+
+def _jpeg(seed=0):
+    """A small photo-like JPEG (smooth noise), as bytes."""
+    import cv2
+
+    image = (np.random.default_rng(seed).random((96, 128, 3)) * 255).astype(np.uint8)
+    ok, data = cv2.imencode(".jpg", cv2.GaussianBlur(image, (0, 0), 2), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    return data.tobytes()
+
+
+def _flip(data, offset):
+    damaged = bytearray(data)
+    damaged[offset] ^= 0xFF
+    return bytes(damaged)
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda data: data[: len(data) * 2 // 3], "a damaged or truncated JPEG file"),
+    (lambda data: _flip(data, len(data) // 2), "corrupt JPEG data"),
+], ids=["cut short", "a flipped byte"])
+def test_damaged_photos_are_named_instead_of_cropped(tmp_path, damage, match):
+    """Regression: the photos were read with cv2.imread, which decodes a truncated or damaged JPEG to
+    grey or garbage pixels without an error (libjpeg only prints a warning): they went into the
+    synthetic dataset's backgrounds. read_image (as for reconstruction) refuses them."""
+    import cv2
+
+    (tmp_path / "a.jpg").write_bytes(_jpeg())
+    path = tmp_path / "b.jpg"
+    path.write_bytes(damage(_jpeg()))
+    assert cv2.imread(str(path), cv2.IMREAD_COLOR) is not None  # OpenCV alone accepts it
+    with pytest.raises(ValueError, match=rf"background photo {re.escape(str(path))} cannot be decoded as an image "
+                                         rf"\({match}.*\); remove or replace it"):
+        PhotoLibrary([tmp_path], use_skimage=False)
+
+
+def _with_exif_orientation(jpeg, orientation):
+    """``jpeg`` with an EXIF segment whose orientation tag is ``orientation`` (6: rotate 90° clockwise)."""
+    tiff = b"II*\x00" + struct.pack("<IH", 8, 1) + struct.pack("<HHII", 0x0112, 3, 1, orientation) + bytes(4)
+    exif = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(exif) + 2) + exif + jpeg[2:]
+
+
+def test_intact_photos_give_the_same_pixels_as_with_cv2_imread(tmp_path):
+    """read_image replaced cv2.imread (BGR) + cvtColor: the RGB pixels of intact photos are unchanged."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    colour = (rng.random((70, 90, 3)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "colour.png"), colour)
+    cv2.imwrite(str(tmp_path / "grey.png"), colour[..., 0])
+    cv2.imwrite(str(tmp_path / "alpha.png"), np.dstack([colour, colour[..., :1]]))
+    cv2.imwrite(str(tmp_path / "deep.png"), (rng.random((40, 50, 3)) * 65535).astype(np.uint16))
+    cv2.imwrite(str(tmp_path / "large.jpeg"), cv2.resize(colour, (900, 700)))
+    (tmp_path / "photo.jpg").write_bytes(_jpeg(2))
+    (tmp_path / "rotated.JPG").write_bytes(_with_exif_orientation(_jpeg(3), 6))
+    library = PhotoLibrary([tmp_path], use_skimage=False)
+    paths = sorted(p for p in tmp_path.iterdir())
+    assert library.sources == [str(p) for p in paths]
+    for path, image in zip(paths, library.images):
+        before = backgrounds._to_rgb_uint8(cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB))
+        assert image.dtype == np.uint8 and np.array_equal(image, before), path.name
+    assert library.images[paths.index(tmp_path / "rotated.JPG")].shape == (128, 96, 3)  # turned upright
+    rgb = library.images[paths.index(tmp_path / "colour.png")]
+    assert np.array_equal(rgb, colour[..., ::-1])  # RGB, not OpenCV's BGR

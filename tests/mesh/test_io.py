@@ -291,3 +291,189 @@ def test_damage_that_trimesh_reads_silently_is_named(tmp_path, name, data, match
     path.write_bytes(data)
     with pytest.raises(ValueError, match=re.escape(f"{path}: ") + ".*" + re.escape(match)):
         load_mesh(path)
+
+
+def _head_file(tmp_path, suffix):
+    """The built-in head (10,242 vertices, 20,480 triangles) written by save_mesh: its bytes."""
+    model = builtin_head_model()
+    return save_mesh(tmp_path / f"head{suffix}", model.mean, model.faces).read_bytes()
+
+
+@pytest.mark.parametrize("suffix", [".off", ".glb", ".stl"])
+def test_the_head_survives_a_round_trip_through_trimesh_formats(tmp_path, suffix):
+    model = builtin_head_model()
+    vertices, faces = load_mesh(save_mesh(tmp_path / f"head{suffix}", model.mean, model.faces))
+    if suffix == ".stl":  # unindexed triangles: the corners, three per face
+        assert torch.allclose(vertices[faces], model.mean[model.faces], atol=1e-4)
+        return
+    assert torch.allclose(vertices, model.mean, atol=1e-4) and torch.equal(faces, model.faces)
+
+
+_OFF_VARIANTS = {
+    "plain": "OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n1 1 0.5\n3 0 1 2\n3 1 3 2\n",
+    "counts on the keyword line": "OFF 4 2 0\n0 0 0\n1 0 0\n0 1 0\n1 1 0.5\n3 0 1 2\n3 1 3 2\n",
+    "no edge count": "OFF\n4 2\n0 0 0\n1 0 0\n0 1 0\n1 1 0.5\n3 0 1 2\n3 1 3 2\n",
+    "comments and blank lines first": "# made by another tool\n\nOFF\n# counts\n4 2 0\n\n0 0 0\n1 0 0\n0 1 0\n"
+                                      "1 1 0.5\n3 0 1 2\n3 1 3 2\n",
+    "windows line ends": "OFF\r\n4 2 0\r\n0 0 0\r\n1 0 0\r\n0 1 0\r\n1 1 0.5\r\n3 0 1 2\r\n3 1 3 2\r\n",
+    "quads and triangles": "OFF\n6 3 0\n0 0 0\n1 0 0\n2 1 0\n1 2 0\n0 1 0\n3 3 3\n4 0 1 2 3\n3 0 1 5\n4 1 2 5 4\n",
+    "vertex and face colours": ("COFF\n4 2 0\n0 0 0 255 0 0 255\n1 0 0 0 255 0 255\n0 1 0 0 0 255 255\n"
+                                "1 1 0.5 9 9 9 255\n3 0 1 2 0.5 0.5 0.5\n3 1 3 2 1 0 0\n"),
+    "signed and exponent numbers": "OFF\n3 1 0\n-1.5e+1 +0.25 .5\n1E-3 2. -0\n0 1 0\n3 0 1 2\n",
+}
+
+
+@pytest.mark.parametrize("variant", list(_OFF_VARIANTS))
+def test_off_reading_agrees_with_trimesh(tmp_path, variant):
+    path = tmp_path / "m.off"
+    path.write_bytes(_OFF_VARIANTS[variant].encode())
+    vertices, faces = load_mesh(path, dtype=torch.float64)
+    reference_vertices, reference_faces = _trimesh_reading(path)
+    assert torch.equal(vertices, reference_vertices)
+    assert torch.equal(faces, reference_faces)
+
+
+def test_an_off_comment_after_the_first_line_does_not_shift_the_data(tmp_path):
+    """Regression: trimesh strips comments by copying the text before the first '#' twice when that
+    text spans lines, so the counts line was read again as a vertex and the faces shifted away
+    (``4 2 0 # counts`` read a vertex (4, 2, 0) and dropped the last face)."""
+    path = tmp_path / "commented.off"
+    path.write_text("OFF\n4 2 0 # counts\n0 0 0\n1 0 0\n0 1 0 # third\n1 1 0.5\n3 0 1 2\n3 1 3 2  # last face\n")
+    vertices, faces = load_mesh(path)
+    assert vertices.tolist() == [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.5]]
+    assert faces.tolist() == [[0, 1, 2], [1, 3, 2]]
+
+
+def _edit_line(number, edit):
+    """A damage that replaces line ``number`` (from 1) of a file by ``edit(line)``."""
+    def damage(data):
+        lines = data.split(b"\n")
+        lines[number - 1] = edit(lines[number - 1])
+        return b"\n".join(lines)
+    return damage
+
+
+# the head's OFF file: line 1 "OFF", line 2 "10242 20480 0", lines 3 to 10244 vertices, then faces "3 i j k"
+_DAMAGED_OFF = {
+    "cut in the faces": (lambda data: b"\n".join(data.split(b"\n")[: 2 + 10242 + 1716]) + b"\n",
+                         "the OFF header announces 10242 vertices and 20480 faces, the file holds 10242 vertex "
+                         "lines and 1716 face lines"),
+    "a face count too large": (lambda data: data.replace(b"10242 20480 0", b"10242 21480 0", 1),
+                               "the OFF header announces 10242 vertices and 21480 faces, the file holds 10242 vertex "
+                               "lines and 20480 face lines"),
+    "a space flipped to '!'": (_edit_line(10252, lambda line: line.replace(b" ", b"!", 2).replace(b"!", b" ", 1)),
+                               "line 10252: expected a polygon: its number of corners (3 or more), then as many "
+                               "vertex indices, got '3 "),
+    "a corner count of 4 with 3 indices": (_edit_line(10248, lambda line: b"4" + line[1:]),
+                                           "line 10248: expected a polygon"),
+    "a non-ASCII byte in a coordinate": (_edit_line(102, lambda line: line.replace(b".", b".\xc8", 1)),
+                                         "line 102: expected ASCII text, got byte 0xc8 at column"),
+    "a non-ASCII byte in a face index": (_edit_line(10345, lambda line: line[:-1] + b"\xc9"),
+                                         "line 10345: expected ASCII text, got byte 0xc9 at column"),
+    "a vertex split in two": (_edit_line(43, lambda line: line.replace(b".", b" ", 1)),
+                              "line 43: expected a vertex of 3 numbers like the first one, got"),
+}
+
+
+@pytest.mark.parametrize("damage", list(_DAMAGED_OFF))
+def test_damaged_off_files_are_named(tmp_path, damage):
+    """trimesh read these without an error: the faces of a file cut short dropped (1,716 of 20,480),
+    a polygon line whose indices do not match its corner count skipped or cut, a byte that is not
+    ASCII dropped from its number ('-96.1808\\xc800562' read as -96.180800562, '938\\xc9' as 938), a
+    face count beyond the file's faces ignored."""
+    damaged, match = _DAMAGED_OFF[damage]
+    path = tmp_path / "head.off"
+    path.write_bytes(damaged(_head_file(tmp_path, ".off")))
+    with pytest.raises(ValueError, match=re.escape(f"{path}: {match}")):
+        load_mesh(path)
+
+
+# the head's OBJ file: line 1 "# facenormals", lines 2 to 10243 vertices "v x y z", then faces "f i j k"
+_NON_ASCII_OBJ = {
+    "in a face index": (_edit_line(12605, lambda line: b"f 39\xc67 1026 3994" if line == b"f 3997 1026 3994" else line),
+                        "line 12605: expected ASCII text in a vertex or face line, got byte 0xc6 at column 5 in "
+                        "'f 39\ufffd7 1026 3994'"),
+    "in a coordinate": (_edit_line(101, lambda line: line[:-2] + b"\xc8" + line[-1:]),
+                        "line 101: expected ASCII text in a vertex or face line, got byte 0xc8"),
+    "in the keyword of a vertex line": (_edit_line(50, lambda line: b"\x89" + line[1:]),
+                                        "line 50: expected ASCII text in a vertex or face line, got byte 0x89 at "
+                                        "column 1"),
+}
+
+
+@pytest.mark.parametrize("where", list(_NON_ASCII_OBJ))
+def test_a_byte_that_is_not_ascii_in_obj_geometry_is_named(tmp_path, where):
+    """Regression: the direct reader gave such a file to trimesh, which dropped the byte ('f 39\\xc67'
+    read as vertex 397 instead of 3997) or the line (a vertex, shifting all later ones), no error."""
+    damage, match = _NON_ASCII_OBJ[where]
+    data = _head_file(tmp_path, ".obj")
+    assert b"\nf 3997 1026 3994\n" in data
+    path = tmp_path / "head.obj"
+    path.write_bytes(damage(data))
+    assert path.read_bytes() != data
+    with pytest.raises(ValueError, match=re.escape(f"{path}: {match}")):
+        load_mesh(path)
+
+
+def test_obj_names_and_comments_may_be_utf8(tmp_path):
+    path = tmp_path / "named.obj"
+    path.write_text("# tête, modélisée\no tête\nmtllib matériaux.mtl\nusemtl peau_éclairée\ng joue\n"
+                    "v 0 0 0 # l'origine\nv 1 0 0\nv 0 1 0\nf 1 2 3 # première face\n", encoding="utf-8")
+    vertices, faces = load_mesh(path)
+    assert vertices.tolist() == [[0, 0, 0], [1, 0, 0], [0, 1, 0]] and faces.tolist() == [[0, 1, 2]]
+
+
+def _glb_json_offset(data: bytes) -> tuple[int, int]:
+    """Where the JSON chunk of a GLB file starts and ends."""
+    return 20, 20 + struct.unpack("<I", data[12:16])[0]
+
+
+_DAMAGED_GLB = {
+    "invalid UTF-8 in the JSON": (lambda data: data.replace(b'"indices"', b'"indi\x9ces"', 1),
+                                  "the GLB JSON chunk is not UTF-8 text (byte 0x9c at offset "),
+    "bytes appended": (lambda data: data + bytes(8), "the GLB header declares 369400 bytes, the file holds 369408"),
+    "cut short": (lambda data: data[:-100], "the GLB header declares 369400 bytes, the file holds 369300"),
+    "a damaged magic": (lambda data: b"glTX" + data[4:], "not a GLB file (expected the magic bytes b'glTF'"),
+    "version 1": (lambda data: data[:4] + struct.pack("<I", 1) + data[8:],
+                  "expected a GLB file of glTF version 2, got version 1"),
+    "a first chunk that is not JSON": (lambda data: data[:16] + b"BIN\x00" + data[20:],
+                                       "expected the first GLB chunk to be of type b'JSON', got b'BIN\\x00'"),
+    "a JSON chunk beyond the file": (lambda data: data[:12] + struct.pack("<I", len(data)) + data[16:],
+                                     "the GLB JSON chunk declares 369400 bytes, beyond the end of the file"),
+    "a binary chunk beyond the file": (lambda data: data[: _glb_json_offset(data)[1]]
+                                       + struct.pack("<I", len(data)) + data[_glb_json_offset(data)[1] + 4 :],
+                                       "the GLB chunk at byte "),
+    "invalid JSON": (lambda data: data.replace(b'"indices":', b'"indices";', 1),
+                     "the GLB JSON chunk is not valid JSON"),
+}
+
+
+@pytest.mark.parametrize("name,warning", [
+    (b'"indhces"', "the GLB JSON gives meshes[0].primitives[0] the unknown property 'indhces', which the reader ignores"),
+    (b'"byteOffsed"', "the GLB JSON gives bufferViews[1] the unknown property 'byteOffsed', which the reader ignores"),
+])
+def test_unknown_glb_property_names_are_warned_about(tmp_path, name, warning):
+    """A damaged name ("indhces") was read as absent without a word (3,414 unindexed triangles instead
+    of 20,480 indexed ones); glTF lets exporters add properties of their own, so it is a warning."""
+    data = _head_file(tmp_path, ".glb")
+    original = b'"indices"' if b"indhces" in name else b'"byteOffset":245760'
+    replacement = name if b"indhces" in name else b'"byteOffsed":245760'
+    path = tmp_path / "head.glb"
+    path.write_bytes(data.replace(original, replacement, 1))
+    with pytest.warns(RuntimeWarning, match=re.escape(f"{path}: {warning}")):
+        load_mesh(path)
+
+
+@pytest.mark.parametrize("damage", list(_DAMAGED_GLB))
+def test_damaged_glb_files_are_named(tmp_path, damage):
+    """Regression: trimesh dropped the bytes of a JSON chunk that is not UTF-8 and took a damaged
+    property name for an absent one: both read the head's 20,480 indexed triangles as 3,414
+    unindexed ones, no error; it also ignored bytes beyond the declared length."""
+    damaged, match = _DAMAGED_GLB[damage]
+    data = _head_file(tmp_path, ".glb")
+    assert len(data) == 369400 and b'"indices"' in data and b'"byteOffset":245760' in data
+    path = tmp_path / "head.glb"
+    path.write_bytes(damaged(data))
+    assert path.read_bytes() != data
+    with pytest.raises(ValueError, match=re.escape(f"{path}: {match}")):
+        load_mesh(path)

@@ -71,11 +71,14 @@ class PhotoLibrary:
         skipped: the ``skimage.data`` images this installation cannot load (each also warned about).
 
     Raises:
-        ValueError: on a missing folder, a folder without photos, or a photo that cannot be decoded.
+        ValueError: on a missing folder, a folder without photos, or a photo that cannot be decoded
+            or is damaged (:func:`facenormals.reconstruct.read_image`'s checks, e.g. libjpeg's warnings
+            about corrupt or truncated JPEG data, which OpenCV decodes to garbage pixels).
     """
 
     def __init__(self, folders: Sequence[str | Path] = (), use_skimage: bool = True) -> None:
-        import cv2
+        # imported here: facenormals.reconstruct imports facenormals.data, which imports this module
+        from facenormals.reconstruct.images import ImageReadError, read_image
 
         self.images: list[np.ndarray] = []
         self.sources: list[str] = []
@@ -107,10 +110,13 @@ class PhotoLibrary:
                       and not any(part.startswith(".") or part == "__MACOSX"  # hidden files, macOS sidecars
                                   for part in p.relative_to(folder).parts))
             for path in sorted(photos):
-                bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-                if bgr is None:  # a user's photo that is silently missing would change the data unnoticed
-                    raise ValueError(f"background photo {path} cannot be decoded as an image; remove or replace it")
-                image = _to_rgb_uint8(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+                try:  # read_image, not cv2.imread: that decodes a damaged JPEG to garbage pixels, no error
+                    rgb = read_image(path)
+                except ImageReadError as error:  # a user's photo silently missing would change the data unnoticed
+                    reason = str(error).removeprefix(f"{path}: ")
+                    raise ValueError(f"background photo {path} cannot be decoded as an image ({reason}); remove or "
+                                     "replace it") from None
+                image = _to_rgb_uint8(rgb)
                 if image is not None:
                     self.images.append(image)
                     self.sources.append(str(path))

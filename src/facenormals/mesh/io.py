@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import codecs
+import io
+import json
 import re
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +118,11 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
     Raises:
         ValueError: naming the file when it is missing, unreadable, not a triangle mesh, holds
             non-finite coordinates, faces indexing missing vertices or face indices of a float
-            type, or (ASCII PLY) a data line whose numbers do not fit the header's properties.
+            type, (ASCII PLY) a data line whose numbers do not fit the header's properties, (OFF) a
+            byte that is not ASCII, lines that do not match the header's counts or a polygon line
+            that does not match its corner count, (OBJ) a byte that is not ASCII in a vertex or face
+            line, or (GLB) a damaged container: its header, chunk lengths, or a JSON chunk that is
+            not UTF-8 JSON or names a property glTF 2.0 does not define for a mesh's objects.
     """
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise ValueError(f"dtype: expected a floating torch.dtype for the vertices, got {dtype!r}")
@@ -147,18 +156,166 @@ def load_mesh(path: str | Path, dtype: torch.dtype = torch.float32) -> tuple[Ten
 def _read_with_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
-    if path.suffix.lower() == ".ply":
+    suffix = path.suffix.lower()
+    source: Path | io.BytesIO = path
+    if suffix == ".ply":
         _check_ply(path)
+    elif suffix == ".glb":
+        _check_glb(path)
+    elif suffix == ".off":
+        text, num_vertices, num_triangles = _check_off(path)
+        source = io.BytesIO(text)
     try:
-        mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+        mesh = trimesh.load(source, file_type=None if source is path else "off", process=False,
+                            maintain_order=True, force="mesh")
     except Exception as error:  # trimesh raises many types for corrupt files
         raise ValueError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from error
     if not isinstance(mesh, trimesh.Trimesh):
         raise ValueError(f"{path}: not a triangle mesh with vertices and faces")
+    if suffix == ".off" and (len(mesh.vertices), len(mesh.faces)) != (num_vertices, num_triangles):
+        raise ValueError(f"{path}: the OFF file holds {num_vertices} vertices and {num_triangles} triangles, "
+                         f"trimesh read {len(mesh.vertices)} and {len(mesh.faces)}")
     points = np.asarray(mesh.vertices)
-    if path.suffix.lower() == ".obj" and len(points):
+    if suffix == ".obj" and len(points):
         points = _obj_trailing_vertices(path, points)
     return points, np.asarray(mesh.faces)
+
+
+def _first_non_ascii(data: bytes) -> str:
+    """``"byte 0x.. at column n"`` for the first byte of ``data`` that is not ASCII."""
+    column = next(i for i, byte in enumerate(data) if byte >= 0x80)
+    return f"byte 0x{data[column]:02x} at column {column + 1}"
+
+
+#: The OFF keywords whose vertex lines start with ``x y z`` (then texture coordinates, a colour, a
+#: normal); trimesh would read the ``4OFF`` and ``nOFF`` variants (other dimensions) wrongly.
+_OFF_KEYWORD = re.compile(r"(ST)?C?N?OFF")
+_NUMBER_TEXT = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_INTEGER_TEXT = re.compile(r"[+-]?[0-9]+")
+
+
+def _check_off(path: Path) -> tuple[bytes, int, int]:
+    """Refuse what trimesh reads silently wrong in an OFF file; return the file's data lines without
+    comments (for trimesh to read: a comment after the first line made it read lines twice) and the
+    numbers of vertices and triangles it must read from them.
+
+    trimesh dropped bytes that are not ASCII (``938\\xc9`` read as 938), skipped a polygon line whose
+    indices do not match its corner count (``3 5646!5649 1441``) and ignored the face lines missing
+    from a file cut short (1,716 faces read where the header announced 20,480)."""
+    with open(path, "rb") as file:
+        data = file.read()
+    if data.startswith(codecs.BOM_UTF8):
+        data = data[len(codecs.BOM_UTF8):]
+    rows: list[tuple[int, list[str]]] = []  # (line number, words) of each line holding data
+    for number, line in enumerate(data.split(b"\n"), 1):
+        content = line.split(b"#", 1)[0]
+        if not content.isascii():
+            raise ValueError(f"{path}: line {number}: expected ASCII text, got {_first_non_ascii(content)} in "
+                             f"{line.decode(errors='replace').strip()[:80]!r}")
+        for piece in content.decode("ascii").splitlines():  # also at "\r", "\v", "\f", as trimesh
+            if piece.split():
+                rows.append((number, piece.split()))
+    keyword = rows[0][1][0] if rows else ""
+    if not _OFF_KEYWORD.fullmatch(keyword):
+        raise ValueError(f"{path}: expected an OFF file starting with the keyword OFF (or COFF, NOFF, STOFF, ...), "
+                         f"got {keyword[:40]!r}")
+    if len(rows[0][1]) > 1:  # "OFF 8 12 0"
+        number, counts, body = rows[0][0], rows[0][1][1:], rows[1:]
+    elif len(rows) > 1:
+        number, counts, body = rows[1][0], rows[1][1], rows[2:]
+    else:
+        raise ValueError(f"{path}: the OFF file ends before its vertex and face counts")
+    if not 2 <= len(counts) <= 3 or not all(word.isdigit() for word in counts):
+        raise ValueError(f"{path}: line {number}: expected the numbers of vertices, faces (and edges), got "
+                         f"{' '.join(counts)[:80]!r}")
+    num_vertices, num_faces = int(counts[0]), int(counts[1])
+    if len(body) != num_vertices + num_faces:
+        found = min(len(body), num_vertices)
+        raise ValueError(f"{path}: the OFF header announces {num_vertices} vertices and {num_faces} faces, the "
+                         f"file holds {found} vertex lines and {len(body) - found} face lines")
+    width = len(body[0][1]) if num_vertices else 3  # x y z, and as many more numbers on every line
+    for number, words in body[:num_vertices]:
+        if len(words) != width or width < 3 or not all(_NUMBER_TEXT.fullmatch(word) for word in words):
+            expected = f"{width} numbers like the first one" if width >= 3 else "at least 3 numbers"
+            raise ValueError(f"{path}: line {number}: expected a vertex of {expected}, got {' '.join(words)[:80]!r}")
+    num_triangles = 0
+    for number, words in body[num_vertices:]:
+        corners = int(words[0]) if words[0].isdigit() else 0
+        if corners < 3 or len(words) <= corners or not all(_INTEGER_TEXT.fullmatch(w) for w in words[1 : corners + 1]):
+            raise ValueError(f"{path}: line {number}: expected a polygon: its number of corners (3 or more), then "
+                             f"as many vertex indices, got {' '.join(words)[:80]!r}")
+        num_triangles += corners - 2
+    lines = [keyword, " ".join(counts)] + [" ".join(words) for _, words in body]
+    return ("\n".join(lines) + "\n").encode("ascii"), num_vertices, num_triangles
+
+
+#: The properties the glTF 2.0 schema defines for the objects trimesh builds a mesh from: trimesh
+#: ignores any other, so a damaged name (``"indhces"``) silently takes the default (no indices).
+_GLTF_PROPERTIES = {
+    "accessors": {"bufferView", "byteOffset", "componentType", "normalized", "count", "type", "max", "min",
+                  "sparse", "name"},
+    "bufferViews": {"buffer", "byteOffset", "byteLength", "byteStride", "target", "name"},
+    "meshes": {"primitives", "weights", "name"},
+    "nodes": {"camera", "children", "skin", "matrix", "mesh", "rotation", "scale", "translation", "weights", "name"},
+}  # fmt: skip
+_GLTF_PRIMITIVE_PROPERTIES = {"attributes", "indices", "material", "mode", "targets"}
+
+
+def _check_glb(path: Path) -> None:
+    """Refuse a GLB file whose container trimesh would read silently wrong: a JSON chunk that is not
+    UTF-8 (trimesh drops the bytes: ``"indi\\x9ces"`` read as a primitive without indices, 3,414
+    triangles instead of 20,480), a declared length other than the file's, chunks that do not fill
+    it. An unknown property name in an accessor, buffer view, mesh, primitive or node is warned
+    about (RuntimeWarning naming the file): glTF lets exporters add their own, but a damaged name
+    (``"indhces"``) is read as absent."""
+    size = path.stat().st_size
+    with open(path, "rb") as file:
+        head = file.read(20)
+        if len(head) < 20 or head[:4] != b"glTF":
+            raise ValueError(f"{path}: not a GLB file (expected the magic bytes b'glTF' and a 20-byte header, got "
+                             f"{head[:4]!r} in a file of {size} bytes)")
+        version, length, json_length = struct.unpack("<3I", head[4:16])
+        if version != 2:
+            raise ValueError(f"{path}: expected a GLB file of glTF version 2, got version {version}")
+        if length != size:
+            raise ValueError(f"{path}: the GLB header declares {length} bytes, the file holds {size} "
+                             "(truncated or damaged)")
+        if head[16:20] != b"JSON":
+            raise ValueError(f"{path}: expected the first GLB chunk to be of type b'JSON', got {head[16:20]!r}")
+        position = 20 + json_length
+        if position > size:
+            raise ValueError(f"{path}: the GLB JSON chunk declares {json_length} bytes, beyond the end of the file")
+        chunk = file.read(json_length)
+        while position < size:  # the other chunks (BIN): an 8-byte header (length, type), then the data
+            file.seek(position)
+            chunk_head = file.read(8)
+            chunk_length = struct.unpack("<I", chunk_head[:4])[0] if len(chunk_head) == 8 else size
+            if position + 8 + chunk_length > size:
+                raise ValueError(f"{path}: the GLB chunk at byte {position} runs beyond the end of the file")
+            position += 8 + chunk_length
+    try:
+        document = json.loads(chunk.decode("utf-8"))
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: the GLB JSON chunk is not UTF-8 text (byte 0x{chunk[error.start]:02x} at "
+                         f"offset {20 + error.start})") from None
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: the GLB JSON chunk is not valid JSON ({error})") from None
+    if not isinstance(document, dict):
+        raise ValueError(f"{path}: expected a JSON object in the GLB JSON chunk, got {type(document).__name__}")
+    for kind, known in _GLTF_PROPERTIES.items():
+        items = document.get(kind)
+        for index, item in enumerate(items if isinstance(items, list) else ()):
+            objects = [(f"{kind}[{index}]", item, known)]
+            if kind == "meshes" and isinstance(item, dict) and isinstance(item.get("primitives"), list):
+                objects += [(f"{kind}[{index}].primitives[{i}]", primitive, _GLTF_PRIMITIVE_PROPERTIES)
+                            for i, primitive in enumerate(item["primitives"])]
+            for where, obj, names in objects:
+                unknown = sorted(set(obj) - names - {"extensions", "extras"}) if isinstance(obj, dict) else []
+                if unknown:
+                    warnings.warn(f"{path}: the GLB JSON gives {where} the unknown propert"
+                                  f"{'ies' if len(unknown) > 1 else 'y'} {', '.join(map(repr, unknown))}, which "
+                                  "the reader ignores (a damaged name? glTF 2.0 defines no such one)", RuntimeWarning,
+                                  stacklevel=4)
 
 
 #: PLY scalar type names and their little-endian numpy types.
@@ -304,7 +461,7 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     with open(path, "rb") as file:
         data = file.read()
     vertex_rows, face_rows = [], []
-    for line in data.splitlines():
+    for number, line in enumerate(data.splitlines(), 1):
         content = line.split(b"#", 1)[0]  # a comment may hold anything, e.g. "# vertex_0"
         words = content.split()
         if not words:
@@ -312,6 +469,10 @@ def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         if words[-1].endswith(b"\\"):
             return None  # continued on the next line
         key = words[0]
+        if not content.isascii() and (key in (b"v", b"f") or not key.isascii()):
+            # trimesh drops the byte: "f 39\xc67" read as vertex 397, not an error
+            raise ValueError(f"{path}: line {number}: expected ASCII text in a vertex or face line, got "
+                             f"{_first_non_ascii(content)} in {line.decode(errors='replace').strip()[:80]!r}")
         if key in (b"v", b"f") and b"_" in content:
             return None  # "1_0" parses as 10
         if key == b"v":
