@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pickle
+import re
 import sys
 import types
 import warnings
@@ -402,6 +403,38 @@ def test_a_damaged_hdf5_structure_names_the_file(tmp_path):
 
 
 @needs_h5py
+def test_a_damaged_group_name_in_a_bfm2017_file_is_refused(tmp_path):
+    """Regression: a damaged byte turned the group name 'expression' into b'expressio\\x91'; the model
+    loaded with no expressions and another mean (the expression mean was not added), without a word."""
+    from facenormals.models import load_model
+
+    for name, damaged, match in (
+        ("bad.h5", b"expressio\x91", r"bad\.h5: damaged BFM \.h5 file: the top-level group name b'expressio\\x91' is "
+                                     r"not printable text \(a statismo BFM file holds shape, expression, color"),
+        ("renamed.h5", b"expressioo", r"renamed\.h5: damaged BFM \.h5 file\? it holds a model named 'expressioo' and "
+                                      r"none named 'expression'"),
+    ):
+        path = write_bfm2017(tmp_path / name)
+        data = path.read_bytes()
+        assert data.count(b"expression") == 1  # the root group's link name
+        path.write_bytes(data.replace(b"expression", damaged))
+        for load in (load_bfm2017, load_model):
+            with pytest.raises(ModelFileError, match=match):
+                load(path)
+    # the groups of genuine files load quietly; an unknown one is named in a warning
+    path = write_bfm2017(tmp_path / "extra.h5")
+    with h5py.File(path, "a") as handle:
+        for group in ("catalog/shape", "metadata/parameters", "version", "color/model"):
+            handle.create_group(group)
+        handle["color/model"].create_dataset("mean", data=np.zeros(3 * NUM_VERTICES, np.float32))
+    assert assert_no_warnings(load_bfm2017, path).num_expressions == 3
+    with h5py.File(path, "a") as handle:
+        handle.create_group("notes")
+    with pytest.warns(UserWarning, match=r"extra\.h5: ignored the unknown top-level groups \['notes'\]"):
+        assert load_bfm2017(path).num_expressions == 3
+
+
+@needs_h5py
 def test_non_unit_components_warn(tmp_path):
     path = write_bfm2017(tmp_path / "scaled.h5", **{"shape/model/pcaBasis": (BASIS * STD_MM).astype(np.float32)})
     with pytest.warns(UserWarning, match=r"scaled\.h5.*unit-norm"):
@@ -566,3 +599,190 @@ def test_load_model_dispatches_by_format(tmp_path):
     with pytest.raises(ModelFileError, match=r"unknown model format '\.xyz'"):
         (tmp_path / "m.xyz").write_text("x")
         load_model(str(tmp_path / "m.xyz"))
+
+
+# --------------------------------------------------------------------------------------------------
+# Damaged files: a clear error naming the file, never a crash or a silent wrong model
+# --------------------------------------------------------------------------------------------------
+
+
+def _tag(mdtype: int, count: int) -> bytes:
+    """A MATLAB v5 element tag (little-endian, as savemat writes on this machine)."""
+    import struct
+
+    return struct.pack("<II", mdtype, count)
+
+
+def _replace_first(data: bytes, old: bytes, new: bytes) -> bytes:
+    assert old in data, f"{old!r} not found"
+    return data.replace(old, new, 1)
+
+
+def _damage_first_compressed_variable(path: Path, change) -> None:
+    """Apply ``change`` to the decompressed content of ``path``'s first (miCOMPRESSED) variable and
+    compress it again: a file whose damage sits inside its deflated data."""
+    import struct
+    import zlib
+
+    data = path.read_bytes()
+    mdtype, count = struct.unpack_from("<II", data, 128)
+    assert mdtype == 15, "not a compressed variable"
+    inner = zlib.compress(change(zlib.decompress(data[136:136 + count])))
+    path.write_bytes(data[:128] + _tag(15, len(inner)) + inner + data[136 + count:])
+
+
+def _damaged_mat_files(tmp_path: Path) -> dict[Path, str]:
+    """MATLAB v5 files scipy.io.loadmat crashed on (segmentation fault), made from valid ones, and the
+    damage to expect in the error: an element type outside MATLAB's, a matrix where numbers belong, in
+    plain and compressed variables and in a struct (as LYHM files have), and a cell array whose class
+    byte says double (scipy then read its first cell, an array, as numbers)."""
+    real_part = _tag(7, 4 * 3 * NUM_VERTICES)  # shapeMU's (the first variable's): float32, 3N values
+    files = {}
+    for name, mdtype in (("type248.mat", 248), ("matrix_type.mat", 14)):
+        path = write_bfm2009(tmp_path / name)
+        path.write_bytes(_replace_first(path.read_bytes(), real_part, _tag(mdtype, 4 * 3 * NUM_VERTICES)))
+        files[path] = f"real part.*data type {mdtype}.*at byte 184"
+    path = write_bfm2009(tmp_path / "compressed.mat", compress=True)
+    _damage_first_compressed_variable(path, lambda raw: _replace_first(raw, real_part, _tag(248, 4 * 3 * NUM_VERTICES)))
+    files[path] = "real part: unknown data type 248 .*of the decompressed variable at byte 128"
+    path = write_lyhm(tmp_path / "struct.mat")  # shp.eigVal: 4 doubles
+    path.write_bytes(_replace_first(path.read_bytes(), _tag(9, 32), _tag(8, 32)))
+    files[path] = "real part: unknown data type 8"
+    cell = np.empty(1, dtype=object)  # tri.faces in a cell, which the loader refuses, had scipy got that far
+    cell[0] = reversed_one_based(CCW_FACES)
+    path = write_lyhm(tmp_path / "cell.mat", faces=cell)
+    flags = _tag(6, 8) + b"\x01\0\0\0"  # array flags: miUINT32, 8 bytes, class 1 (a cell)
+    path.write_bytes(_replace_first(path.read_bytes(), flags, _tag(6, 8) + b"\x06\0\0\0"))  # class 6: double
+    files[path] = "real part of data type 14, expected numbers"
+    return files
+
+
+def test_a_damaged_matlab_element_type_is_refused_before_scipy_reads_it(tmp_path):
+    """Regression: scipy.io.loadmat crashed the whole process (segmentation fault, exit 139) on a MATLAB
+    v5 file whose element type byte was damaged: load_model, load_bfm2009, load_lyhm and `facenormals
+    models show FILE` died. The structure is now checked first; the loads run in a child process so
+    that a crash fails this test instead of ending the test run."""
+    import subprocess
+
+    files = _damaged_mat_files(tmp_path)
+    code = (
+        "import sys\n"
+        "from facenormals import cli\n"
+        "from facenormals.models import load_model\n"
+        "from facenormals.models.formats import load_bfm2009, load_lyhm\n"
+        "for path in sys.argv[1:]:\n"
+        "    for load in (load_model, load_bfm2009, load_lyhm):\n"
+        "        try:\n"
+        "            load(path)\n"
+        "            print('LOADED', path)\n"
+        "        except Exception as error:\n"
+        "            print(type(error).__name__, str(error).replace(chr(10), ' '))\n"
+        "    print('CLI exit', cli.main(['models', 'show', path]))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code, *map(str, files)], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, f"exit {result.returncode}: {result.stderr[-2000:]}"
+    lines = result.stdout.splitlines()
+    for path, damage in files.items():
+        errors = [line for line in lines if str(path) in line and not line.startswith("CLI")]
+        assert len(errors) == 3 and all(line.startswith(f"ModelFileError {path}: ") for line in errors), lines
+        damaged = [line for line in errors if re.match(rf"ModelFileError {re.escape(str(path))}: damaged MATLAB file: "
+                                                     rf".*{damage}", line)]
+        assert len(damaged) == 2, errors  # load_model and the format's loader; the other reads no damaged variable
+    assert lines.count("CLI exit 1") == len(files), lines
+    assert str(tmp_path / "type248.mat") in result.stderr  # what the command line printed
+
+
+def test_valid_matlab_files_of_every_kind_pass_the_structure_check(tmp_path):
+    """The check walks what savemat writes, plain and compressed: numbers of each type, complex,
+    logical, text, cells, structs (nested and arrays of them), sparse and empty arrays."""
+    from facenormals.models.mat5 import check_mat5
+
+    struct_array = np.zeros((2,), dtype=[("a", object), ("b", object)])
+    struct_array[0] = (np.arange(3.0), "x")
+    struct_array[1] = (np.eye(2), np.array([], dtype=np.float64))
+    variables = {
+        "f8": np.arange(12.0).reshape(3, 4), "f4": np.ones(5, np.float32), "i1": np.arange(-3, 3, dtype=np.int8),
+        "u2": np.arange(7, dtype=np.uint16), "i8": np.arange(3, dtype=np.int64), "u8": np.arange(3, dtype=np.uint64),
+        "z": np.arange(4) + 1j, "logical": np.array([True, False]), "text": "héllo wörld", "texts": ["ab", "cd"],
+        "empty": np.zeros((0, 3)), "scalar": 2.5,
+        "cell": np.array([np.arange(2.0), "t", np.zeros((2, 2))], dtype=object),
+        "nested": {"inner": {"deep": np.arange(4.0)}, "n": 1}, "records": struct_array,
+        "sparse": scipy.sparse.csc_matrix(np.eye(4)), "zsparse": scipy.sparse.csc_matrix(np.eye(3) * 1j),
+    }
+    for compress in (False, True):
+        path = tmp_path / f"kinds_{compress}.mat"
+        scipy.io.savemat(path, variables, do_compression=compress)
+        check_mat5(path)
+        assert set(scipy.io.whosmat(path)) and scipy.io.loadmat(path)["f8"].shape == (3, 4)
+        lyhm = write_lyhm(tmp_path / f"lyhm_{compress}.mat")
+        if compress:  # structs compressed, as MATLAB's default v7 files hold them
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                scipy.io.savemat(lyhm, scipy.io.loadmat(lyhm), do_compression=True)
+        check_model(assert_no_warnings(load_lyhm, lyhm), STD_MM)
+        check_model(load_bfm2009(write_bfm2009(tmp_path / f"bfm_{compress}.mat", compress=compress)), STD_MM)
+
+
+def test_an_unknown_array_class_is_a_model_file_error(tmp_path, monkeypatch):
+    """Regression: a damaged array class byte raised scipy's bare UnboundLocalError (from
+    _mio5_utils); any exception scipy raises for a damaged file is now an error naming the file."""
+    from facenormals.models import load_model
+
+    path = write_bfm2009(tmp_path / "class.mat")
+    data = bytearray(path.read_bytes())
+    assert data[144] == 7  # shapeMU's array class: single
+    data[144] ^= 0xFF
+    path.write_bytes(bytes(data))
+    for load in (load_bfm2009, load_model):
+        with pytest.raises(ModelFileError,
+                           match=r"class\.mat: damaged MATLAB file: unknown array class 248 \(at byte 136\)"):
+            load(path)
+
+    def unexpected(*args, **kwargs):
+        raise UnboundLocalError("local variable 'arr' referenced before assignment")
+
+    monkeypatch.setattr(scipy.io, "loadmat", unexpected)
+    with pytest.raises(ModelFileError, match=r"good\.mat: cannot read BFM 2009 MATLAB file \(UnboundLocalError: local"):
+        load_bfm2009(write_bfm2009(tmp_path / "good.mat"))
+
+
+def test_a_matlab_file_whose_variables_cannot_be_listed_is_not_called_an_lyhm_file(tmp_path):
+    """Regression: load_model sent a .mat whose variables could not be listed to the LYHM loader, which
+    reported a damaged BFM 2009 file as "cannot read LYHM MATLAB file"."""
+    from facenormals.models import load_model
+
+    good = write_bfm2009(tmp_path / "bfm.mat")
+    data = good.read_bytes()
+    cut = tmp_path / "cut.mat"
+    cut.write_bytes(data[:64])
+    with pytest.raises(ModelFileError,
+                       match=r"cut\.mat: cannot read MATLAB file \(tried as BFM 2009 and LYHM\): ") as caught:
+        load_model(cut)
+    assert "LYHM MATLAB" not in str(caught.value)
+    # cut inside the header of its last variable (texMU, which no loader reads): it loads as with load_bfm2009
+    end = tmp_path / "cut_in_texture.mat"
+    end.write_bytes(data[:data.index(b"texMU") - 8])
+    check_model(load_model(end), STD_MM)
+    assert load_model(end).name == "bfm2009"
+
+
+@pytest.mark.parametrize("length, error", [(1 << 62, "MemoryError"), ((1 << 63) + 5, "OverflowError")])
+def test_a_damaged_pickle_length_names_the_file(tmp_path, length, error):
+    """Regression: a damaged opcode or length in a FLAME pickle (e.g. BINPUT turned into BINBYTES8, whose
+    length then comes from the bytes after it) raised a bare MemoryError or OverflowError ("BINBYTES
+    exceeds system's maximum size"), naming no file; the command line printed a traceback."""
+    import pickletools
+    import struct
+
+    from facenormals.models import load_model
+
+    path = write_flame(tmp_path / "flame.pkl")
+    data = bytearray(path.read_bytes())
+    position = next(pos for op, _, pos in pickletools.genops(bytes(data)) if op.name == "BINPUT")
+    data[position] = 0x8E  # BINBYTES8, then an 8-byte length
+    data[position + 1:position + 9] = struct.pack("<Q", length)
+    path.write_bytes(bytes(data))
+    for load in (load_flame, load_model):
+        with pytest.raises(ModelFileError, match=rf"flame\.pkl: cannot read FLAME pickle \({error}: .+\)"):
+            load(path)

@@ -471,3 +471,30 @@ def test_a_face_vertex_count_outside_the_mesh_names_the_archive(ict_npz, tmp_pat
             load_ict_npz(tmp_path / "bad.npz")
     np.savez(tmp_path / "all.npz", **{**arrays, "face_vertex_count": np.array(num_vertices)})
     assert int(load_ict_npz(tmp_path / "all.npz").face_region.sum()) > 0
+
+
+def test_a_damaged_npy_header_in_the_archive_is_refused(ict_npz, tmp_path, monkeypatch):
+    """Regression: np.load reads what a member's .npy header declares: a damaged header, (1, N, 3) for
+    the (2, N, 3) identity basis, loaded one identity mode silently (and fetch took the archive for the
+    release). Each member must now hold exactly what its header declares."""
+    from facenormals.models import load_model
+
+    path = tmp_path / "ict.npz"
+    np.savez_compressed(path, **_small_archive(ict_npz))
+    assert load_ict_npz(path).num_shape == 2
+    damaged = tmp_path / "damaged.npz"  # the archive rewritten around the damaged member (its checksums agree)
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(damaged, "w", zipfile.ZIP_DEFLATED) as target:
+        for info in source.infolist():
+            member = source.read(info)
+            if info.filename == "identity_basis.npy":
+                assert b"'shape': (2, " in member
+                member = member.replace(b"'shape': (2, ", b"'shape': (1, ")
+            target.writestr(info, member)
+    match = (r"damaged\.npz: cannot read ICT-FaceKit archive \(ValueError: member 'identity_basis\.npy': its \.npy "
+             r"header declares \(1, \d+, 3\) float\d+ .*\(a damaged header\)\)")
+    for load in (load_ict_npz, load_model, fetch_module.ict_release_differences):
+        with pytest.raises(ModelFileError, match=match):
+            load(damaged)
+    monkeypatch.setenv("FACENORMALS_ICT", str(damaged))
+    with pytest.raises(ModelFileError, match=match + "; replace it"):
+        load_model("ict")

@@ -136,6 +136,35 @@ def test_a_damaged_compressed_model_file_names_the_file(tmp_path):
         MorphableModel.load(packed)
 
 
+def test_a_damaged_npy_header_in_a_model_file_is_refused(tmp_path):
+    """Regression: a changed shape digit in a member's .npy header ((20480, 3) -> (10480, 3)) loaded half
+    the mesh silently: numpy reads the bytes the header declares and stops there, before zip's CRC-32
+    check at the member's end. Each member is now read to its end and must hold what its header declares."""
+    from facenormals.models import builtin_head_model, load_model
+
+    path = tmp_path / "head.npz"
+    builtin_head_model().save(path)
+    data = path.read_bytes()
+    assert data.count(b"'shape': (20480, 3)") == 1  # faces.npy's header
+    path.write_bytes(data.replace(b"'shape': (20480, 3)", b"'shape': (10480, 3)"))  # the zip's checksums unchanged
+    for load in (MorphableModel.load, load_model):
+        with pytest.raises(ModelFileError, match=r"head\.npz: cannot read model file \(ValueError: member "
+                                                 r"'faces\.npy': its \.npy header declares \(10480, 3\) int64 "
+                                                 r"\(251520 bytes of data\), but the member holds 491520 \(a damaged "
+                                                 r"header\)\)"):
+            load(path)
+    path.write_bytes(data.replace(b"'shape': (20480, 3)", b"'shape': (30480, 3)"))  # more than it holds
+    with pytest.raises(ModelFileError,
+                       match=r"head\.npz: .*member 'faces\.npy': its \.npy header declares \(30480, 3\)"):
+        MorphableModel.load(path)
+    damaged = bytearray(data)  # a damaged value: the member fails its CRC-32 check
+    damaged[data.index(b"'shape': (20480, 3)") + 4000] ^= 0x01  # in faces.npy's data
+    path.write_bytes(bytes(damaged))
+    with pytest.raises(ModelFileError, match=r"head\.npz: cannot read model file \(BadZipFile: Bad CRC-32 for file "
+                                             r"'faces\.npy'\)"):
+        MorphableModel.load(path)
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [

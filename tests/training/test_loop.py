@@ -642,3 +642,30 @@ def test_save_checkpoint_refuses_a_training_state_without_its_entries(tmp_path, 
     with pytest.raises(ValueError, match="state: a training checkpoint that load_checkpoint cannot read: " + message):
         save_checkpoint(tmp_path / "c.pt", state)
     assert not (tmp_path / "c.pt").exists()
+
+
+def test_a_damaged_byte_in_a_checkpoint_fails_its_crc_check(tmp_path, good_checkpoint):
+    """Regression: torch.load never checks the CRC-32 of its zip's members: a flipped byte turned the
+    config key 'ema_decay' into 'ema_ddcay' and load_checkpoint accepted it; flipped weights loaded."""
+    import struct
+    import zipfile
+
+    data = good_checkpoint.read_bytes()
+    assert data.count(b"ema_decay") == 1  # in data.pkl, stored
+    with zipfile.ZipFile(good_checkpoint) as archive:
+        info = next(i for i in archive.infolist() if i.filename.endswith("/data/0"))
+        pickle_name = next(n for n in archive.namelist() if n.endswith("/data.pkl"))
+    name_length, extra_length = struct.unpack_from("<HH", data, info.header_offset + 26)
+    weight = bytearray(data)
+    weight[info.header_offset + 30 + name_length + extra_length + 2] ^= 0xFF  # a byte of the first tensor
+    for name, damaged, member in (("key.pt", data.replace(b"ema_decay", b"ema_ddcay"), pickle_name),
+                                  ("weight.pt", bytes(weight), info.filename)):
+        path = tmp_path / name
+        path.write_bytes(damaged)
+        message = (f"{re.escape(str(path))}: not a readable checkpoint \\(damaged: its member "
+                   f"{re.escape(repr(member))} fails its CRC-32 check\\)")
+        with pytest.raises(ValueError, match=message):
+            load_checkpoint(path)
+        with pytest.raises(ValueError, match=message):
+            export_weights(path, tmp_path / "w.pt")
+        assert not (tmp_path / "w.pt").exists()

@@ -21,7 +21,7 @@ import numpy as np
 
 from facenormals.core.files import atomic_write
 from facenormals.models.ict import ICT_FULL_EXPRESSIONS, ICT_FULL_IDENTITIES, ICT_KEYS, ict_npz_from_raw
-from facenormals.models.morphable import NPZ_READ_ERRORS, ModelFileError
+from facenormals.models.morphable import NPZ_READ_ERRORS, ModelFileError, read_npz
 from facenormals.models.registry import ICT_ARCHIVE, cache_dir
 
 __all__ = ["ICT_URL", "FetchError", "fetch_ict", "ict_release_differences"]
@@ -101,21 +101,19 @@ def ict_release_differences(archive: str | Path) -> list[str]:
         []
     """
     differences = []
-    try:
-        with np.load(archive, allow_pickle=False) as data:
-            missing = [key for key in ICT_RELEASE_SHA256 if key not in data.files]
-            if missing:
-                raise ModelFileError(f"{archive}: not an ICT-FaceKit archive, missing arrays {missing}")
-            for key, digest in ICT_RELEASE_SHA256.items():
-                array = np.ascontiguousarray(data[key])
-                if key in _COMPLETE_MODES and array.shape[0] != _COMPLETE_MODES[key]:
-                    continue
-                if hashlib.sha256(array.tobytes()).hexdigest() != digest:
-                    differences.append(key)
-    except ModelFileError:
-        raise
-    except NPZ_READ_ERRORS as error:  # missing, not an archive, truncated, pickled arrays
+    try:  # members read whole and CRC-checked: a damaged copy is an error, not "another release"
+        arrays = read_npz(archive, list(ICT_RELEASE_SHA256))
+    except NPZ_READ_ERRORS as error:  # missing, not an archive, truncated, damaged, pickled arrays
         raise ModelFileError(f"{archive}: cannot read ICT-FaceKit archive ({type(error).__name__}: {error})") from error
+    missing = [key for key in ICT_RELEASE_SHA256 if key not in arrays]
+    if missing:
+        raise ModelFileError(f"{archive}: not an ICT-FaceKit archive, missing arrays {missing}")
+    for key, digest in ICT_RELEASE_SHA256.items():
+        array = np.ascontiguousarray(arrays[key])
+        if key in _COMPLETE_MODES and array.shape[0] != _COMPLETE_MODES[key]:
+            continue
+        if hashlib.sha256(array.tobytes()).hexdigest() != digest:
+            differences.append(key)
     return differences
 
 

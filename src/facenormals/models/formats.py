@@ -36,22 +36,25 @@ import torch
 
 from facenormals.core.check import INWARD_SHARE, outward_share
 from facenormals.models.ict import opengl_to_model_frame
+from facenormals.models.mat5 import check_mat5
 from facenormals.models.morphable import ModelFileError, MorphableModel, check_model_dtype
 
 __all__ = ["load_bfm2009", "load_bfm2017", "load_flame", "load_lyhm"]
 
-# Errors that reading a damaged or foreign file can raise in scipy.io, h5py, pickle and numpy (h5py
-# raises RuntimeError for some damaged HDF5 structures).
+# Errors that reading a damaged or foreign file can raise in h5py and numpy (h5py raises RuntimeError for
+# some damaged HDF5 structures; a damaged size can ask for more memory than there is). The MATLAB and
+# FLAME readers catch every Exception: scipy.io and pickle raise almost any type for garbage.
 _READ_ERRORS: tuple[type[BaseException], ...] = (
     OSError,
     RuntimeError,
     ValueError,
     EOFError,
     TypeError,
-    KeyError,
-    IndexError,
+    LookupError,
     AttributeError,
     NotImplementedError,
+    MemoryError,
+    OverflowError,
     pickle.UnpicklingError,
     struct.error,
     zlib.error,
@@ -271,20 +274,27 @@ def _mat73_value(node: Any) -> Any:
     return np.asarray(value).T
 
 
-def _read_mat(path: Path, names: list[str], what: str) -> dict[str, Any]:
-    """The variables ``names`` (those present) of a MATLAB file, v5 or v7.3."""
+def _read_mat(path: Path, names: list[str], what: str, checked: bool = False) -> dict[str, Any]:
+    """The variables ``names`` (those present) of a MATLAB file, v5 or v7.3; a v5 file's structure is
+    checked first (:func:`~facenormals.models.mat5.check_mat5`) unless ``checked`` says it was."""
     _check_exists(path, what)
     try:
         if _is_hdf5(path):  # MATLAB v7.3 files are HDF5 files with a 512-byte header
             with _h5py(path, "MATLAB v7.3 (HDF5)").File(path, "r") as handle:
                 return {key: _mat73_value(handle[key]) for key in names if key in handle}
+        if not checked:
+            check_mat5(path, names)
         return scipy.io.loadmat(path, struct_as_record=False, squeeze_me=True, variable_names=names)
     except ModelFileError:
         raise
-    except _READ_ERRORS as error:
+    except Exception as error:  # noqa: BLE001 - scipy raises many types for a damaged file (UnboundLocalError too)
         raise ModelFileError(
             f"{path}: cannot read {what} MATLAB file ({type(error).__name__}: {error})"
         ) from error
+
+
+_LYHM_VARIABLES = ["shp", "tri"]
+_BFM2009_VARIABLES = ["shapeMU", "shapePC", "shapeEV", "tl"]
 
 
 def _field(container: Any, key: str) -> Any:
@@ -335,7 +345,10 @@ def load_lyhm(path: str | Path, num_shape: int | None = None, dtype: torch.dtype
         ValueError: if ``num_shape`` is out of range.
     """
     path = Path(path)
-    data = _read_mat(path, ["shp", "tri"], "LYHM")
+    return _lyhm_model(path, _read_mat(path, _LYHM_VARIABLES, "LYHM"), num_shape, dtype)
+
+
+def _lyhm_model(path: Path, data: dict[str, Any], num_shape: int | None, dtype: torch.dtype) -> MorphableModel:
     shp = _require(path, data.get("shp"), "variable 'shp' (not an LYHM file?)")
     if not _is_struct(shp):
         raise ModelFileError(f"{path}: variable 'shp' is a {type(shp).__name__}, expected a struct")
@@ -400,9 +413,11 @@ def load_bfm2009(path: str | Path, num_shape: int | None = None, dtype: torch.dt
         ValueError: if ``num_shape`` is out of range.
     """
     path = Path(path)
-    keys = ["shapeMU", "shapePC", "shapeEV", "tl"]
-    data = _read_mat(path, keys, "BFM 2009")
-    missing = [key for key in keys if data.get(key) is None]
+    return _bfm2009_model(path, _read_mat(path, _BFM2009_VARIABLES, "BFM 2009"), num_shape, dtype)
+
+
+def _bfm2009_model(path: Path, data: dict[str, Any], num_shape: int | None, dtype: torch.dtype) -> MorphableModel:
+    missing = [key for key in _BFM2009_VARIABLES if data.get(key) is None]
     if missing:
         raise ModelFileError(f"{path}: not a BFM 2009 01_MorphableModel.mat, missing variables {missing}")
     work = _work_dtype(dtype)
@@ -432,9 +447,77 @@ def load_bfm2009(path: str | Path, num_shape: int | None = None, dtype: torch.dt
     )
 
 
+def _load_matlab_model(path: str | Path, dtype: torch.dtype = torch.float32) -> MorphableModel:
+    """Load a BFM 2009 or an LYHM ``.mat`` file, telling them apart by their variables (``shapeMU``, ``shp``).
+
+    A v5 file's structure is checked once (:func:`~facenormals.models.mat5.check_mat5`). When its variables cannot be listed
+    (a damaged or truncated file), each format's own variables are read in turn, which works when the
+    damage lies in variables neither reads; otherwise the error says that both formats were tried.
+
+    Raises:
+        ModelFileError: naming the file if it is missing, damaged, of neither layout, or its model is invalid.
+    """
+    path = Path(path)
+    _check_exists(path, "MATLAB")
+    names: set[str] | None = None
+    try:
+        if _is_hdf5(path):  # MATLAB v7.3
+            with _h5py(path, "MATLAB v7.3 (HDF5)").File(path, "r") as handle:
+                names = set(handle.keys())
+        else:
+            check_mat5(path, _BFM2009_VARIABLES + _LYHM_VARIABLES)  # before scipy reads (a bad type crashed it)
+            names = {entry[0] for entry in scipy.io.whosmat(path)}
+    except ModelFileError:
+        raise
+    except Exception as error:  # noqa: BLE001 - damaged files: scipy and h5py raise many types
+        reason = f"{type(error).__name__}: {error}"
+    if names is not None:
+        if "shapeMU" in names:
+            return _bfm2009_model(path, _read_mat(path, _BFM2009_VARIABLES, "BFM 2009", checked=True), None, dtype)
+        if "shp" in names:
+            return _lyhm_model(path, _read_mat(path, _LYHM_VARIABLES, "LYHM", checked=True), None, dtype)
+        raise ModelFileError(f"{path}: neither a BFM 2009 model (variable 'shapeMU') nor an LYHM one ('shp'); "
+                             f"it holds {sorted(names)[:8]}")
+    for variables, key, build in ((_BFM2009_VARIABLES, "shapeMU", _bfm2009_model),
+                                  (_LYHM_VARIABLES, "shp", _lyhm_model)):
+        try:
+            data = _read_mat(path, variables, "MATLAB", checked=True)
+        except ModelFileError:
+            continue
+        if data.get(key) is not None:
+            return build(path, data, None, dtype)
+    raise ModelFileError(f"{path}: cannot read MATLAB file (tried as BFM 2009 and LYHM): {reason}")
+
+
 # --------------------------------------------------------------------------------------------------
 # Statismo HDF5 (BFM 2017 / 2019)
 # --------------------------------------------------------------------------------------------------
+
+
+#: The top-level groups of a statismo BFM file (2009 .h5, 2017, 2019).
+_STATISMO_GROUPS = ("shape", "expression", "color", "catalog", "metadata", "version")
+
+
+def _check_statismo_groups(path: Path, handle: Any, h5py: Any) -> None:
+    """Refuse a BFM .h5 file whose top-level names show damage; warn about other unknown ones.
+
+    A damaged byte in a group's name hides the group: ``expression`` turned into ``b'expressio\\x91'``
+    and the model loaded with no expressions and another mean, without a word. Names that are not
+    printable text, and a model group of unknown name where ``expression`` is missing, are refused.
+    """
+    names = list(handle.keys())
+    for name in names:  # h5py gives bytes for a name that is not UTF-8
+        if not isinstance(name, str) or not name.isprintable():
+            raise ModelFileError(f"{path}: damaged BFM .h5 file: the top-level group name {name!r} is not printable "
+                                 f"text (a statismo BFM file holds {', '.join(_STATISMO_GROUPS)})")
+    unknown = [name for name in names if name not in _STATISMO_GROUPS]
+    models = [name for name in unknown if isinstance(handle[name], h5py.Group) and "model" in handle[name]]
+    if models and "expression" not in handle:
+        raise ModelFileError(f"{path}: damaged BFM .h5 file? it holds a model named {models[0]!r} and none named "
+                             f"'expression' (a statismo BFM file holds {', '.join(_STATISMO_GROUPS)})")
+    if unknown:
+        warnings.warn(f"{path}: ignored the unknown top-level groups {unknown} (a statismo BFM file holds "
+                      f"{', '.join(_STATISMO_GROUPS)}): is the file damaged?", stacklevel=3)
 
 
 def load_bfm2017(
@@ -486,6 +569,7 @@ def load_bfm2017(
     expr_keys = ["expression/model/mean", "expression/model/pcaBasis", "expression/model/pcaVariance"]
     try:
         with h5py.File(path, "r") as handle:
+            _check_statismo_groups(path, handle, h5py)
             missing = [key for key in keys if key not in handle]
             if missing:
                 raise ModelFileError(f"{path}: not a statismo BFM model file, missing datasets {missing}")
@@ -695,8 +779,10 @@ def load_flame(
     try:
         with open(path, "rb") as handle:
             data = _FlameUnpickler(handle).load()
-    except _READ_ERRORS as error:
-        raise ModelFileError(f"{path}: cannot read FLAME pickle ({type(error).__name__}: {error})") from error
+    except Exception as error:  # noqa: BLE001 - garbage makes pickle raise anything (the unpickler runs no code)
+        reason = str(error) or ("a length in the file asks for more memory than there is: a damaged pickle?"
+                                if isinstance(error, MemoryError) else "")
+        raise ModelFileError(f"{path}: cannot read FLAME pickle ({type(error).__name__}: {reason})") from error
     if not isinstance(data, dict):
         raise ModelFileError(f"{path}: the pickle holds a {type(data).__name__}, expected a FLAME dict")
     missing = [key for key in ("v_template", "shapedirs", "f") if key not in data]

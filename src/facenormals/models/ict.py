@@ -27,7 +27,7 @@ from facenormals.core.check import check_integer
 from facenormals.core.files import atomic_write
 from facenormals.models.landmarks import ict_landmark_indices
 from facenormals.models.morphable import (FACE_CROP_RADIUS_MM, NPZ_READ_ERRORS, ModelFileError, MorphableModel,
-                                         check_model_dtype)
+                                         check_model_dtype, read_npz)
 
 __all__ = ["ict_npz_from_raw", "load_ict_npz", "load_ict_raw", "opengl_to_model_frame"]
 
@@ -82,19 +82,14 @@ def load_ict_npz(path: str | Path, num_shape: int | None = None, dtype: torch.dt
     path = Path(path)
     if not path.exists():
         raise ModelFileError(f"{path}: ICT-FaceKit archive not found")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in ICT_KEYS if k not in data.files]
-            if missing:
-                raise ModelFileError(f"{path}: not an ICT-FaceKit archive, missing arrays {missing}")
-            units = str(data["units"]) if "units" in data.files else "cm"
-            arrays = {k: data[k] for k in ICT_KEYS}
-            if "face_vertex_count" in data.files:
-                arrays["face_vertex_count"] = data["face_vertex_count"]
-    except ModelFileError:
-        raise
+    try:  # each member read whole and CRC-checked: np.load stopped where a damaged .npy header said
+        arrays = read_npz(path, (*ICT_KEYS, "units", "face_vertex_count"))
     except NPZ_READ_ERRORS as error:
         raise ModelFileError(f"{path}: cannot read ICT-FaceKit archive ({type(error).__name__}: {error})") from error
+    missing = [k for k in ICT_KEYS if k not in arrays]
+    if missing:
+        raise ModelFileError(f"{path}: not an ICT-FaceKit archive, missing arrays {missing}")
+    units = str(arrays.pop("units")) if "units" in arrays else "cm"
     scale = {"cm": 10.0, "mm": 1.0, "m": 1000.0}.get(units)
     if scale is None:
         raise ModelFileError(f"{path}: unknown units {units!r}, expected 'cm', 'mm' or 'm'")

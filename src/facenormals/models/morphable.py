@@ -21,15 +21,78 @@ from facenormals.core.files import atomic_write
 
 __all__ = ["MorphableModel", "ModelFileError"]
 
-# What reading a damaged .npz can raise: a bad zip directory, a truncated member or a damaged deflate
-# stream (zlib.error), a bad .npy header (ValueError).
-NPZ_READ_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+# What reading a damaged .npz can raise: a bad zip directory or a member failing its CRC-32 check
+# (BadZipFile), a truncated member or a damaged deflate stream (EOFError, zlib.error), a bad .npy header
+# (ValueError), an unknown compression method (NotImplementedError).
+NPZ_READ_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error,
+                                                    NotImplementedError)
+
+_NPY_HEADERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def read_npz(path: str | Path, names: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz`` archive (all, or those of ``names`` it holds), each member checked whole.
+
+    ``np.load`` reads the bytes a member's ``.npy`` header declares and stops there: a damaged header
+    (a shape digit changed) loaded part of an array silently, and zip's CRC-32, checked only at a
+    member's end, was never reached. Here each member's size must be its header's plus the declared
+    data, and it is read to its end, so that a damaged byte anywhere in it fails the CRC-32 check.
+    Arrays of Python objects are refused (nothing is unpickled). Reads each member once, in chunks.
+
+    Raises:
+        One of ``NPZ_READ_ERRORS`` for a damaged archive (the message names the member), e.g.
+        ``zipfile.BadZipFile`` for a CRC mismatch, ``ValueError`` for a size that does not match the header.
+
+    Example:
+        >>> import tempfile
+        >>> path = Path(tempfile.mkdtemp()) / "a.npz"
+        >>> np.savez(path, x=np.arange(6).reshape(2, 3), y=np.array("mm"))
+        >>> {k: v.shape for k, v in read_npz(path).items()}
+        {'x': (2, 3), 'y': ()}
+    """
+    arrays: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as archive:
+        members = {info.filename.removesuffix(".npy"): info for info in archive.infolist()}
+        for key in members if names is None else [n for n in names if n in members]:
+            arrays[key] = _read_npy_member(archive, members[key])
+    return arrays
+
+
+def _read_npy_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray:
+    with archive.open(info) as member:
+        version = np.lib.format.read_magic(member)
+        if version not in _NPY_HEADERS:
+            raise ValueError(f"member {info.filename!r}: unsupported .npy format version {version}")
+        shape, fortran_order, dtype = _NPY_HEADERS[version](member)
+        if dtype.hasobject:
+            raise ValueError(f"member {info.filename!r}: holds Python objects, which are not loaded")
+        count = math.prod(shape)
+        size = count * dtype.itemsize
+        if info.file_size != member.tell() + size:
+            raise ValueError(f"member {info.filename!r}: its .npy header declares {shape} {dtype} ({size} bytes of "
+                             f"data), but the member holds {info.file_size - member.tell()} (a damaged header)")
+        array = np.empty(count, dtype=dtype)
+        view, done = memoryview(array.view(np.uint8)), 0
+        while done < size:
+            chunk = member.read(min(1 << 20, size - done))
+            if not chunk:
+                raise EOFError(f"member {info.filename!r}: ends after {done} of {size} bytes of data")
+            view[done:done + len(chunk)] = chunk
+            done += len(chunk)
+        if member.read(1):  # also what makes zipfile check the CRC-32 of a member read exactly to its end
+            raise ValueError(f"member {info.filename!r}: holds more data than its .npy header declares")
+    if fortran_order:
+        return array.reshape(shape[::-1]).transpose()
+    return array.reshape(shape)
 
 #: Radius in mm around the nose tip of the evaluation face region (the crop of common face-reconstruction
 #: benchmarks): the built-in head's, ICT-FaceKit's and :meth:`MorphableModel.with_annotations`'s default.
 FACE_CROP_RADIUS_MM = 95.0
 FORMAT_NAME = "facenormals-morphable-model"
 FORMAT_VERSION = 1
+#: The arrays :meth:`MorphableModel.save` writes (and :meth:`MorphableModel.load` reads; others are ignored).
+_MODEL_KEYS = ("format", "version", "name", "units", "mean", "shape_basis", "shape_std", "faces", "expression_basis",
+               "expression_names", "landmark_names", "landmark_indices", "metadata", "face_region")
 
 
 class ModelFileError(ValueError):
@@ -481,25 +544,22 @@ class MorphableModel(nn.Module):
         if not path.exists():
             raise ModelFileError(f"{path}: model file not found")
         required = ["format", "version", "mean", "shape_basis", "shape_std", "faces"]
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                missing = [k for k in required if k not in data.files]
-                if missing:
-                    raise ModelFileError(f"{path}: not a facenormals model file, missing keys {missing}")
-                if str(data["format"]) != FORMAT_NAME:
-                    raise ModelFileError(f"{path}: format is {str(data['format'])!r}, expected {FORMAT_NAME!r}")
-                version = data["version"]
-                if version.ndim != 0 or version.dtype.kind not in "iu":
-                    raise ModelFileError(f"{path}: format version {version.tolist()!r}, expected an integer")
-                if int(version) > FORMAT_VERSION:
-                    raise ModelFileError(f"{path}: format version {int(version)} is newer than supported")
-                if int(version) < 1:
-                    raise ModelFileError(f"{path}: format version {int(version)}, expected 1 to {FORMAT_VERSION}")
-                arrays = {k: data[k] for k in data.files}
-        except ModelFileError:
-            raise
-        except (*NPZ_READ_ERRORS, KeyError) as error:
+        try:  # every member read whole, CRC-checked (np.load stopped where a damaged header said)
+            arrays = read_npz(path, _MODEL_KEYS)
+        except NPZ_READ_ERRORS as error:
             raise ModelFileError(f"{path}: cannot read model file ({type(error).__name__}: {error})") from error
+        missing = [k for k in required if k not in arrays]
+        if missing:
+            raise ModelFileError(f"{path}: not a facenormals model file, missing keys {missing}")
+        if str(arrays["format"]) != FORMAT_NAME:
+            raise ModelFileError(f"{path}: format is {str(arrays['format'])!r}, expected {FORMAT_NAME!r}")
+        version = arrays["version"]
+        if version.ndim != 0 or version.dtype.kind not in "iu":
+            raise ModelFileError(f"{path}: format version {version.tolist()!r}, expected an integer")
+        if int(version) > FORMAT_VERSION:
+            raise ModelFileError(f"{path}: format version {int(version)} is newer than supported")
+        if int(version) < 1:
+            raise ModelFileError(f"{path}: format version {int(version)}, expected 1 to {FORMAT_VERSION}")
         for key in ("landmark_names", "landmark_indices", "expression_names"):  # a 0-d array is no list
             if key in arrays and arrays[key].ndim != 1:
                 raise ModelFileError(f"{path}: array {key!r} has shape {arrays[key].shape}, expected a 1-D list")

@@ -69,27 +69,8 @@ def _load_path(path: Path, dtype: torch.dtype) -> MorphableModel:
         if "identity_basis" in names and "format" not in names:
             return load_ict_npz(path, dtype=dtype)
         return MorphableModel.load(path, dtype=dtype)
-    if suffix == ".mat":
-        import scipy.io
-
-        names: set[str] = set()
-        if formats._is_hdf5(path):  # MATLAB v7.3
-            try:
-                with formats._h5py(path, "model").File(path, "r") as handle:
-                    names = set(handle.keys())
-            except (OSError, RuntimeError):  # h5py raises both for damaged files
-                pass  # corrupt: the loader reports it
-        else:
-            try:
-                names = {entry[0] for entry in scipy.io.whosmat(path)}
-            except Exception:  # corrupt files: let the loaders report
-                pass
-        if "shapeMU" in names:
-            return formats.load_bfm2009(path, dtype=dtype)
-        if names and "shp" not in names:  # readable, but neither layout
-            raise ModelFileError(f"{path}: neither a BFM 2009 model (variable 'shapeMU') nor an LYHM one ('shp'); "
-                                 f"it holds {sorted(names)[:8]}")
-        return formats.load_lyhm(path, dtype=dtype)
+    if suffix == ".mat":  # BFM 2009 or LYHM, told apart by their variables
+        return formats._load_matlab_model(path, dtype=dtype)
     if suffix in (".h5", ".hdf5"):
         return formats.load_bfm2017(path, dtype=dtype)
     if suffix in (".pkl", ".pickle"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from importlib import resources
 from pathlib import Path
 
@@ -60,9 +62,30 @@ def describe_load_error(error: BaseException) -> str:
     return f"{type(error).__name__}: {first}" if first else type(error).__name__
 
 
+def describe_zip_damage(path: Path) -> str | None:
+    """Why the torch zip file ``path`` is damaged, or ``None``: every member is read and checked
+    against its CRC-32 (``zipfile.ZipFile.testzip``), which ``torch.load`` never does (a flipped byte
+    loaded as a changed weight or a renamed config key). Files that do not start as a zip archive
+    (torch's legacy format, or no torch file at all) are left to ``torch.load``."""
+    try:
+        with open(path, "rb") as handle:
+            if handle.read(4) != b"PK\x03\x04":  # torch.load's own test for its zip format
+                return None
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()
+    except (OSError, EOFError, ValueError, NotImplementedError, zipfile.BadZipFile, zlib.error) as error:
+        return f"damaged zip archive ({type(error).__name__}: {error})"
+    if damaged is not None:
+        return f"damaged: its member {damaged!r} fails its CRC-32 check"
+    return None
+
+
 def _read_payload(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: {'a folder, not a weight file' if path.is_dir() else 'no such weight file'}")
+    damage = describe_zip_damage(path)
+    if damage is not None:
+        raise ValueError(f"{path}: not a readable weight file ({damage})")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file

@@ -10,7 +10,7 @@ from torch.utils.data import Dataset
 
 from facenormals.core.files import atomic_write
 from facenormals.nn.pretrained import (WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata, check_threshold,
-                                      describe_load_error)
+                                      describe_load_error, describe_zip_damage)
 
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
 
@@ -64,6 +64,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: {'a folder, not a checkpoint' if path.is_dir() else 'no such checkpoint'}")
+    damage = describe_zip_damage(path)  # torch.load never checks the CRC-32 of its zip members
+    if damage is not None:
+        raise ValueError(f"{path}: not a readable checkpoint ({damage})")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)  # plain data: no code runs on load
     except Exception as error:  # noqa: BLE001 - torch raises many types for a corrupt file
