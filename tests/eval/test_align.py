@@ -96,6 +96,17 @@ def test_differentiable():
     assert torch.isfinite(source.grad).all() and torch.isfinite(target.grad).all()
 
 
+def test_gradcheck():
+    """The docstring promises gradients: finite ones alone would pass a detached centroid or scale."""
+    g = torch.Generator().manual_seed(5)
+    source = torch.randn(2, 7, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    rotation = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0]
+    noise = 0.05 * torch.randn(2, 7, 3, generator=g, dtype=torch.float64)
+    target = (1.7 * source.detach() @ rotation.T + torch.tensor([1.0, -2.0, 3.0]) + noise).requires_grad_()
+    weights = (0.5 + torch.rand(2, 7, generator=g, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda s, t, w: fit_similarity(s, t, w), (source, target, weights))
+
+
 @pytest.mark.parametrize(
     "kwargs,match",
     [

@@ -98,6 +98,19 @@ def test_inflated_sphere_rigid_one_mm_similarity_zero():
     assert report.similarity.scale == pytest.approx(50.0 / 51.0, rel=1e-9)
 
 
+def test_errors_are_root_mean_squares_in_mm():
+    """A sphere inflated by 2 mm: every error is 2 mm, so an RMSE reported as a mean square (4 mm²)
+    fails here, where the 1 mm sphere above cannot tell the two apart."""
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    vertices = torch.from_numpy(np.asarray(mesh.vertices))
+    faces = torch.from_numpy(np.asarray(mesh.faces)).long()
+    region = torch.ones(len(vertices), dtype=torch.bool)
+    s, rot, t = similarity_of(2, 1.0)
+    report = evaluate_reconstruction((vertices * 52.0 / 50.0) @ rot.T + t, faces, vertices, faces, region)
+    assert report.rigid.correspondence_rmse == pytest.approx(2.0, abs=1e-6)
+    assert report.rigid.point_to_plane_rmse == pytest.approx(2.0, abs=1e-2)
+
+
 def test_different_topology_needs_correspondences(head):
     model, shape = head
     vertices, faces = trimesh.remesh.subdivide(shape.numpy(), model.faces.numpy())  # same surface, new vertices appended
@@ -128,11 +141,14 @@ def test_report_dict_and_table(head):
     text = str(report)
     assert "point-to-plane RMSE" in text and "similarity" in text and "delta90" in text
 
-    summary = summarise([report, report])
-    assert summary["count"] == 2 and set(summary) == {"count", "mean"}
-    assert summary["mean"]["rigid"]["point_to_plane_rmse"] == pytest.approx(report.rigid.point_to_plane_rmse)
     baseline = evaluate_reconstruction(model.mean + 3 * (shape - model.mean), model.faces, model.mean, model.faces,
                                        model.face_region, model)
+    summary = summarise([report, baseline])  # two different reports: a max or a first would not pass
+    assert summary["count"] == 2 and set(summary) == {"count", "mean"}
+    for kind in ("rigid", "similarity"):
+        for name in ("point_to_plane_rmse", "correspondence_rmse", "depth_median"):
+            a, b = (getattr(r, kind).as_dict()[name] for r in (report, baseline))
+            assert a != b and summary["mean"][kind][name] == pytest.approx((a + b) / 2)
     summary = summarise([report], [baseline])
     ratio = summary["ratio"]["similarity"]["correspondence_rmse"]
     assert ratio == pytest.approx(report.similarity.correspondence_rmse / baseline.similarity.correspondence_rmse)

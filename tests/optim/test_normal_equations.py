@@ -55,6 +55,10 @@ def test_gradcheck() -> None:
     J = torch.randn(2, 5, 4, generator=g, dtype=F64, requires_grad=True)
     r = torch.randn(2, 5, generator=g, dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(normal_equations, (J, r))
+    # P >= 16 takes the split product whose lower-left block is mirrored from the upper-right one
+    J = torch.randn(2, 20, 17, generator=g, dtype=F64, requires_grad=True)
+    r = torch.randn(2, 20, generator=g, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(normal_equations, (J, r))
 
 
 @pytest.mark.parametrize(
