@@ -160,16 +160,6 @@ _OBJ_VARIANTS = {
 }
 
 
-@pytest.mark.parametrize("variant", list(_OBJ_VARIANTS))
-def test_obj_reading_agrees_with_trimesh(tmp_path, variant):
-    path = tmp_path / "m.obj"
-    path.write_bytes(_OBJ_VARIANTS[variant].encode())
-    vertices, faces = load_mesh(path, dtype=torch.float64)
-    reference_vertices, reference_faces = _trimesh_reading(path)
-    assert torch.equal(vertices, reference_vertices)
-    assert torch.equal(faces, reference_faces)
-
-
 def test_polygons_of_several_materials_keep_the_files_vertices(tmp_path):
     """Regression: such files went to trimesh, which copies the vertices per material (the raw
     ICT-FaceKit OBJ, 26,719 v lines and 12 materials, read as 257,701 vertices), so a mesh in a model's
@@ -323,10 +313,10 @@ _OFF_VARIANTS = {
 }
 
 
-@pytest.mark.parametrize("variant", list(_OFF_VARIANTS))
-def test_off_reading_agrees_with_trimesh(tmp_path, variant):
-    path = tmp_path / "m.off"
-    path.write_bytes(_OFF_VARIANTS[variant].encode())
+@pytest.mark.parametrize("suffix,variant", [(".obj", v) for v in _OBJ_VARIANTS] + [(".off", v) for v in _OFF_VARIANTS])
+def test_reading_agrees_with_trimesh(tmp_path, suffix, variant):
+    path = tmp_path / f"m{suffix}"
+    path.write_bytes({".obj": _OBJ_VARIANTS, ".off": _OFF_VARIANTS}[suffix][variant].encode())
     vertices, faces = load_mesh(path, dtype=torch.float64)
     reference_vertices, reference_faces = _trimesh_reading(path)
     assert torch.equal(vertices, reference_vertices)
