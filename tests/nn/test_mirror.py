@@ -125,3 +125,31 @@ def test_mirror_averaged_names_a_net_that_returns_no_unet_output():
     with pytest.raises(ValueError, match="net: expected a network returning a UNetOutput, got one returning tuple"):
         mirror_averaged(lambda x: tuple(NormalLandmarkUNet(num_landmarks=2, base_channels=4, depth=2)(x)),
                         torch.rand(1, 3, 8, 8), [1, 0])
+
+
+class _Fixed(nn.Module):
+    """A network whose output does not depend on the image: asymmetric random maps, the same for the
+    photo and its mirror image, so the average must mix each map with its mirrored copy."""
+
+    def __init__(self):
+        super().__init__()
+        g = torch.Generator().manual_seed(3)
+        self.n = torch.nn.functional.normalize(torch.randn(1, 3, 6, 8, generator=g), dim=1)
+        self.z = torch.rand(1, len(LANDMARK_NAMES), 6, 8, generator=g)
+        self.f = torch.randn(1, 1, 6, 8, generator=g)
+
+    def forward(self, images):
+        count = images.shape[0]
+        return UNetOutput(self.n.expand(count, -1, -1, -1), self.z.expand(count, -1, -1, -1),
+                          self.f.expand(count, -1, -1, -1))
+
+
+def test_the_average_of_asymmetric_maps_follows_its_formula():
+    """The sphere above is mirror-symmetric and its logits zero, so ignoring the mirrored normals or
+    averaging the foreground wrongly passed; here each term is checked against the formula."""
+    net = _Fixed()
+    avg = mirror_averaged(net, torch.rand(1, 3, 6, 8))
+    mirrored_normals = net.n.flip(-1) * torch.tensor([-1.0, 1.0, 1.0]).view(1, 3, 1, 1)
+    torch.testing.assert_close(avg.normals, torch.nn.functional.normalize(net.n + mirrored_normals, dim=1))
+    torch.testing.assert_close(avg.foreground_logits, 0.5 * (net.f + net.f.flip(-1)))
+    torch.testing.assert_close(avg.landmarks, 0.5 * (net.z + net.z.flip(-1)[:, mirror_permutation()]))
