@@ -264,3 +264,22 @@ def test_calibrate_landmark_threshold_checks_the_dataset(spoil, match):
     with pytest.raises(ValueError, match=match):
         calibrate_landmark_threshold(net, _Spoiled(spoil), batch_size=4, mirror=False)
     assert calibrate_landmark_threshold(net, _Spoiled("no normals"), batch_size=4, mirror=False)[1] >= 0
+
+
+class _RolledForeground(Cheat):
+    """The true maps, with the foreground logits rolled 2 px to the right."""
+
+    def forward(self, images):
+        out = super().forward(images)
+        return UNetOutput(out.normals, out.landmarks, out.foreground_logits.roll(2, dims=-1))
+
+
+def test_foreground_iou_against_numpy():
+    """Only IoU = 1 of a perfect network was checked: a hard-coded 1.0 passed."""
+    data = TinyHeads(6)
+    m = evaluate_network(_RolledForeground(data), data, batch_size=4, mirror=False)
+    truth = np.stack([d["foreground"].numpy()[0] for d in data.items])
+    predicted = np.roll(truth, 2, axis=-1)
+    expected = (truth & predicted).sum() / (truth | predicted).sum()
+    assert 0.3 < expected < 0.99
+    assert m.foreground_iou == pytest.approx(float(expected), abs=1e-9)
