@@ -31,6 +31,11 @@ def test_normal_map_colours():
     nmap[:, 0, 0] = torch.tensor([0.0, -1.0, 0.0])  # up (y is down)
     img = normal_map_to_image(nmap)
     assert img[0, 0].tolist() == [128, 255, 128] and img[0, 1].tolist() == [0, 0, 0]
+    # oblique normals (x not 0, every component of another size): a flipped x or a wrong scale shows
+    g = torch.Generator().manual_seed(2)
+    n = torch.nn.functional.normalize(torch.randn(3, 4, 5, generator=g, dtype=torch.float64), dim=0)
+    expected = np.round((n.numpy().transpose(1, 2, 0) * [1, -1, -1] + 1) / 2 * 255).astype(np.uint8)
+    np.testing.assert_array_equal(normal_map_to_image(n), expected)
 
 
 def test_dots_sit_on_the_pixel_centres():
