@@ -41,6 +41,15 @@ def test_single_view_beats_the_mean_head_and_landmarks_only(model, head, tmp_pat
     assert set(result.energies) == {"normals", "landmarks", "prior", "intrinsics_prior"}
     assert result.export(tmp_path / "fit.ply").exists()
     assert "yaw" in result.summary()
+    # camera-frame vertices X_c = R (p + t), written out here: a transposed rotation passed before
+    R, t = result.rotation[0, 0], result.translation[0, 0]
+    camera = torch.stack([R @ (p + t) for p in result.vertices[0]])
+    torch.testing.assert_close(result.camera_vertices(0)[0], camera)
+    f, u0, v0 = result.intrinsics[0, 0].tolist()
+    seen = obs.landmark_mask[0, 0]
+    lm = camera[model.landmark_indices][seen]
+    uv = torch.stack([f * lm[:, 0] / lm[:, 2] + u0, f * lm[:, 1] / lm[:, 2] + v0], dim=-1)
+    assert float((uv - obs.landmarks[0, 0][seen]).norm(dim=-1).max()) < 3.0  # projected onto the observations
     for call, name in ((lambda i: result.export(tmp_path / "x.ply", subject=i), "subject"),
                        (lambda i: result.summary(i), "subject"), (lambda i: result.camera_vertices(i), "view")):
         with pytest.raises(ValueError, match=rf"{name}: expected an index in \[0, 1\), got 1"):
