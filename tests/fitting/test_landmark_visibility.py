@@ -122,7 +122,10 @@ def test_drop_hidden_landmarks_keeps_views_it_cannot_judge(model):
     assert torch.equal(kept, few) and pose is None
     two = torch.cat([points, points])
     mixed = torch.cat([few, torch.ones_like(few)])  # one view judged, one not: no pose for the fit
-    assert drop_hidden_landmarks(two, mixed, model, K.expand(2, 3), (128, 128))[1] is None
+    kept, pose = drop_hidden_landmarks(two, mixed, model, K.expand(2, 3), (128, 128))
+    assert pose is None and torch.equal(kept[0], few[0])
+    alone, _ = drop_hidden_landmarks(points, mixed[1:], model, K, (128, 128))  # the judged view as if alone
+    assert torch.equal(kept[1], alone[0]) and not bool(alone.all())  # and its hidden landmarks are dropped
     everything = torch.ones(1, 24, dtype=torch.bool)
     shown = int((~hidden_landmarks(model, R, t, K, (128, 128))).sum())
     kept, _ = drop_hidden_landmarks(points, everything, model, K, (128, 128), min_landmarks=shown + 1)
