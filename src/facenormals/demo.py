@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import copy
 import math
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from facenormals.core.check import check_integer
+from facenormals.core.check import check_folder_name, check_integer
 from facenormals.core.files import StagedFiles
 from facenormals.eval import evaluate_reconstruction
 from facenormals.fitting import fit_head
@@ -56,9 +55,7 @@ def run_demo(
     start = time.perf_counter()
     seed = check_integer(seed, "seed", minimum=0)
     image_size = check_integer(image_size, "image_size", minimum=8)
-    if out_dir is not None and not (isinstance(out_dir, (str, os.PathLike)) and str(out_dir)):
-        # Path("") is the working folder: a mistaken empty name would write there
-        raise ValueError(f"out_dir: expected a folder name or None, got {out_dir!r}")
+    check_folder_name(out_dir, "out_dir")
     if seed >= 2**63:  # torch's generators take a signed 64-bit seed
         raise ValueError(f"seed: expected an integer below 2**63, got {seed}")
     if model.mean.dtype != torch.float32:  # .to() converts a module in place: the caller's model stays as it is

@@ -24,6 +24,7 @@ __all__ = [
     "check_faces",
     "check_finite",
     "check_floating",
+    "check_folder_name",
     "check_image_size",
     "check_integer",
     "check_nonnegative",
@@ -45,6 +46,21 @@ MILLIMETRE_SPAN = (50.0, 5000.0)
 def _format_shape(shape: Sequence[str | int]) -> str:
     items = [str(s) for s in shape]
     return "(" + ", ".join(items) + ("," if len(items) == 1 else "") + ")"
+
+
+def check_folder_name(value: object, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is ``None`` or a non-empty ``str`` /
+    ``os.PathLike`` (``Path("")`` is the working folder: a mistaken empty name would write there).
+
+    Example:
+        >>> check_folder_name("out", "out_dir")
+        >>> check_folder_name("", "out_dir")
+        Traceback (most recent call last):
+        ...
+        ValueError: out_dir: expected a folder name or None, got ''
+    """
+    if value is not None and not (isinstance(value, (str, os.PathLike)) and str(value)):
+        raise ValueError(f"{name}: expected a folder name or None, got {value!r}")
 
 
 def check_tensor(x: object, name: str) -> None:

@@ -42,9 +42,7 @@ class FaceBox:
 
     def __post_init__(self) -> None:
         for name in ("x", "y", "width", "height"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-                raise ValueError(f"FaceBox {name}: expected a finite number, got {value!r}")
+            _check_finite_number(getattr(self, name), f"FaceBox {name}")
         if not (self.width > 0 and self.height > 0):
             raise ValueError(f"FaceBox: expected width and height > 0, got {self.width!r} x {self.height!r}")
 
@@ -57,6 +55,12 @@ class FaceBox:
         iy = max(0.0, min(self.y + self.height, other.y + other.height) - max(self.y, other.y))
         inter = ix * iy
         return inter / (self.width * self.height + other.width * other.height - inter)
+
+
+def _check_finite_number(value: object, name: str) -> None:
+    """A plain finite real number (Python or NumPy; not a bool, a string or a tensor)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
 
 
 @lru_cache(maxsize=1)
@@ -141,9 +145,8 @@ def head_crop_box(face: FaceBox, scale: float = 1.9, shift: float = -0.12) -> tu
     """
     if not isinstance(face, FaceBox):
         raise ValueError(f"face: expected a FaceBox, got {type(face).__name__}")
-    for name, value in (("scale", scale), ("shift", shift)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-            raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    _check_finite_number(scale, "scale")
+    _check_finite_number(shift, "shift")
     if scale <= 0:
         raise ValueError(f"scale: expected a number > 0, got {scale!r}")
     cx, cy = face.center

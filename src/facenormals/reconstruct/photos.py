@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 import torch
 
+from facenormals.core.check import check_folder_name
 from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
@@ -134,9 +135,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
     for path in paths:
         if not isinstance(path, (str, os.PathLike)):
             raise ValueError(f"paths: expected file names (str or os.PathLike), got {type(path).__name__} {path!r}")
-    if out_dir is not None and not (isinstance(out_dir, (str, os.PathLike)) and str(out_dir)):
-        # Path("") is the working folder: a mistaken empty name would write and remove files there
-        raise ValueError(f"out_dir: expected a folder name or None, got {out_dir!r}")
+    check_folder_name(out_dir, "out_dir")  # Path("") would write and remove files in the working folder
     try:
         kind = torch.device(device).type
     except (RuntimeError, TypeError):
