@@ -33,6 +33,7 @@ __all__ = [
     "check_same_dtype_device",
     "check_shape",
     "check_tensor",
+    "check_unit_range",
     "environment_integer",
     "outward_share",
     "outside_millimetre_span",
@@ -61,6 +62,29 @@ def check_folder_name(value: object, name: str) -> None:
     """
     if value is not None and not (isinstance(value, (str, os.PathLike)) and str(value)):
         raise ValueError(f"{name}: expected a folder name or None, got {value!r}")
+
+
+def check_unit_range(images: Tensor, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``images`` are finite and in ``[0, 1]`` (up to 1e-3),
+    e.g. RGB images scaled from 8 bits: 0-255 values or ``inf`` would otherwise be clamped to white, or
+    find nothing, silently. One device synchronisation (``aminmax`` propagates NaN); skipped while
+    ``torch.compile`` traces and under ``torch.func``.
+
+    Example:
+        >>> check_unit_range(torch.tensor([0.0, 0.5, 1.0]), "images")
+        >>> check_unit_range(torch.tensor([0.0, 255.0]), "images")
+        Traceback (most recent call last):
+        ...
+        ValueError: images: expected RGB values in [0, 1] (an 8-bit image / 255), got values in [0, 255]
+    """
+    if not images.numel() or not values_readable(images):
+        return
+    low, high = torch.aminmax(images.detach())
+    low, high = torch.stack([low, high]).float().tolist()
+    if low >= -1e-3 and high <= 1.0 + 1e-3:
+        return
+    check_finite(images, name)
+    raise ValueError(f"{name}: expected RGB values in [0, 1] (an 8-bit image / 255), got values in [{low:g}, {high:g}]")
 
 
 def check_tensor(x: object, name: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from facenormals.core.check import check_finite, check_floating, check_real, check_shape, check_tensor, values_readable
+from facenormals.core.check import check_floating, check_real, check_shape, check_tensor, check_unit_range
 
 __all__ = ["PhotoAugmentation"]
 
@@ -72,7 +72,7 @@ class PhotoAugmentation(nn.Module):
         batch = images[None] if single else images
         check_shape(batch, ["B", 3, "H", "W"], "images")
         check_floating(batch, "images")
-        _check_unit_range(batch)
+        check_unit_range(batch, "images")
         if self.blur_probability > 0:
             batch = self.blur(batch)
         if self.noise_probability > 0 and self.noise_std[1] > 0:
@@ -87,21 +87,6 @@ class PhotoAugmentation(nn.Module):
     def extra_repr(self) -> str:
         return (f"blur_probability={self.blur_probability}, blur_sigma={self.blur_sigma}, "
                 f"noise_probability={self.noise_probability}, noise_std={self.noise_std}")
-
-
-def _check_unit_range(images: Tensor) -> None:
-    """Raise ``ValueError`` naming ``images`` unless they are finite and in ``[0, 1]`` (up to 1e-3, as
-    :func:`~facenormals.reconstruct.predict_maps` takes them): the final clamp would otherwise turn
-    0-255 values or ``inf`` into a white image and keep NaN, silently. One device synchronisation
-    (``aminmax`` propagates NaN); skipped while ``torch.compile`` traces and under ``torch.func``."""
-    if not images.numel() or not values_readable(images):
-        return
-    low, high = torch.aminmax(images.detach())
-    low, high = torch.stack([low, high]).float().tolist()
-    if low >= -1e-3 and high <= 1.0 + 1e-3:
-        return
-    check_finite(images, "images")
-    raise ValueError(f"images: expected RGB values in [0, 1] (an 8-bit image / 255), got values in [{low:g}, {high:g}]")
 
 
 def _pair(value: object, name: str) -> tuple[float, float]:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_nonnegative, check_shape
+from facenormals.core.check import check_floating, check_nonnegative, check_shape, check_unit_range
 from facenormals.core.files import StagedFiles
 from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting import (FACING_AWAY_COSINE, FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks,
@@ -164,12 +164,8 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
     """
     check_shape(crops, ["V", 3, "S", "S"], "crops")
     check_floating(crops, "crops")
-    check_finite(crops, "crops")  # one NaN pixel would turn every map into NaN
-    if crops.numel():
-        low, high = float(crops.min()), float(crops.max())
-        if low < -1e-3 or high > 1.0 + 1e-3:  # 0-255 values find no landmark, and read as "no face"
-            raise ValueError(f"crops: expected RGB values in [0, 1] (an 8-bit image / 255), got values in "
-                             f"[{low:g}, {high:g}]")
+    # one NaN pixel would turn every map into NaN; 0-255 values find no landmark, and read as "no face"
+    check_unit_range(crops, "crops")
     factor = 2 ** getattr(net, "depth", 0)
     if crops.shape[-1] % factor or crops.shape[-1] < factor:
         raise ValueError(f"crops: expected a side that is a positive multiple of {factor} (the network's "
