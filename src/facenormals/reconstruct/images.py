@@ -67,7 +67,8 @@ _JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG file", "Inconsistent
 """libjpeg's warnings about damaged data (``JWRN_*``: bad Huffman codes, extraneous bytes, missing
 restart markers, a truncated file); its other warnings (an unknown JFIF revision...) are harmless."""
 
-_SIGNATURES = ((b"\xff\xd8\xff", "JPEG"), (b"\x89PNG\r\n\x1a\n", "PNG"))
+_JPEG_SIGNATURE = b"\xff\xd8\xff"
+_SIGNATURES = ((_JPEG_SIGNATURE, "JPEG"), (b"\x89PNG\r\n\x1a\n", "PNG"))
 """File signatures of the formats whose damage :func:`read_image` names as such."""
 
 _STDERR_LOCK = threading.Lock()
@@ -125,7 +126,7 @@ def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
 
     if not data.size:
         return None, []
-    if data[:3].tobytes() != b"\xff\xd8\xff":
+    if data[: len(_JPEG_SIGNATURE)].tobytes() != _JPEG_SIGNATURE:
         return cv2.imdecode(data, cv2.IMREAD_COLOR), []
     data = _without_header_padding(data)
     if sys.stderr is None:  # Python started with file descriptor 2 closed: no warnings to read
