@@ -173,3 +173,22 @@ def test_zero_dimensional_tensors_are_numbers_and_others_are_not():
         check_integer(torch.tensor([[3]]), "count")
     with pytest.raises(ValueError, match="weight: expected a real number"):
         check_nonnegative(torch.tensor([0.5, 1.0]), "weight")
+
+
+def test_check_device_takes_cpu_and_cuda_names_and_devices_only():
+    import re
+
+    from facenormals.core.check import check_device
+
+    assert check_device("cpu") == torch.device("cpu") == check_device(torch.device("cpu"))
+    assert check_device("cpu:0") == torch.device("cpu", 0)
+    for bad in ("mps", "meta", "bogus", "", "cuda:x", None, 3.5, torch.device("meta")):
+        with pytest.raises(ValueError, match=re.escape(f"dev: expected 'cpu', 'cuda' or 'cuda:N', got {bad!r}")):
+            check_device(bad, "dev")
+    if not torch.cuda.is_available():
+        for cuda in ("cuda", "cuda:1", torch.device("cuda", 0)):
+            with pytest.raises(ValueError, match=re.escape(f"dev: {cuda!r} requested but this torch build "
+                                                            f"({torch.__version__}) has no CUDA device; use X")):
+                check_device(cuda, "dev", hint="; use X")
+    else:
+        assert check_device("cuda").type == "cuda"

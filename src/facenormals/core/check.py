@@ -21,6 +21,7 @@ from torch._C._functorch import is_functorch_wrapped_tensor  # private; what tor
 
 __all__ = [
     "check_all_finite",
+    "check_device",
     "check_faces",
     "check_finite",
     "check_floating",
@@ -62,6 +63,33 @@ def check_folder_name(value: object, name: str) -> None:
     """
     if value is not None and not (isinstance(value, (str, os.PathLike)) and str(value)):
         raise ValueError(f"{name}: expected a folder name or None, got {value!r}")
+
+
+def check_device(device: object, name: str = "device", hint: str = "") -> torch.device:
+    """The ``torch.device`` that ``device`` names, or ``ValueError`` naming ``name`` unless it is a CPU
+    or CUDA device (a ``str`` such as ``"cpu"``, ``"cuda"``, ``"cuda:1"``, or a ``torch.device``) and,
+    for CUDA, this torch build has one. ``hint`` ends the message about a missing CUDA device (e.g.
+    which option to use instead). Checked before work starts: torch's own error comes from the first
+    tensor moved, after the files are read.
+
+    Example:
+        >>> check_device("cpu")
+        device(type='cpu')
+        >>> check_device("mps")
+        Traceback (most recent call last):
+        ...
+        ValueError: device: expected 'cpu', 'cuda' or 'cuda:N', got 'mps'
+    """
+    try:
+        parsed = torch.device(device)  # type: ignore[arg-type]
+    except (RuntimeError, TypeError):
+        parsed = None
+    if parsed is None or parsed.type not in ("cpu", "cuda"):
+        raise ValueError(f"{name}: expected 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{name}: {device!r} requested but this torch build ({torch.__version__}) has no CUDA "
+                         f"device{hint}")
+    return parsed
 
 
 def check_unit_range(images: Tensor, name: str) -> None:

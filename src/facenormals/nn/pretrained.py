@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from facenormals.core.check import check_device
 from facenormals.core.files import atomic_write
 from facenormals.nn.unet import NormalLandmarkUNet
 
@@ -171,11 +172,11 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     Args:
         path: a file written by :func:`~facenormals.training.export_weights`; ``None`` loads the
             shipped weights.
-        device: where to put the network.
+        device: where to put the network: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or such a ``torch.device``.
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError: naming ``device`` when torch cannot read it as a device (or it is CUDA, unavailable).
+        ValueError: naming ``device`` unless it is a CPU or an available CUDA device.
         ValueError: if it is not a facenormals weight file, states an architecture outside
             ``ARCHITECTURE_LIMITS`` (checked, with the weights' shapes, before the network is built),
             does not match its architecture or holds NaN or infinite weights.
@@ -185,7 +186,7 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
         >>> net.num_landmarks, net.training
         (24, False)
     """
-    _check_device(device)  # before the file is read: torch's RuntimeError would come after all the work
+    check_device(device)  # before the file is read: torch's RuntimeError would come after all the work
     path = pretrained_weights_path() if path is None else Path(path)
     payload = _read_payload(path)
     arch = payload["architecture"]
@@ -227,16 +228,6 @@ def load_weights(path: str | Path | None = None, device: str | torch.device = "c
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
     return net.to(device).eval()
-
-
-def _check_device(device: object) -> None:
-    """Raise ``ValueError`` naming ``device`` unless torch reads it as a device, and a CUDA one is available."""
-    try:
-        parsed = torch.device(device)  # type: ignore[arg-type]
-    except (RuntimeError, TypeError):
-        raise ValueError(f"device: expected a torch device, e.g. 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
-    if parsed.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device: {device!r} requested but this torch build ({torch.__version__}) has no CUDA device")
 
 
 def check_threshold(value: object, channels: int | None, name: str = "metadata landmark_threshold") -> None:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 import torch
 
-from facenormals.core.check import check_folder_name
+from facenormals.core.check import check_device, check_folder_name
 from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.reconstruct.detect import FaceBox, NoFaceError, crop_square, detect_faces, head_crop_box
 from facenormals.reconstruct.images import read_image
@@ -136,15 +136,7 @@ def reconstruct_photos(paths: Sequence[str | Path], out_dir: str | Path | None,
         if not isinstance(path, (str, os.PathLike)):
             raise ValueError(f"paths: expected file names (str or os.PathLike), got {type(path).__name__} {path!r}")
     check_folder_name(out_dir, "out_dir")  # Path("") would write and remove files in the working folder
-    try:
-        kind = torch.device(device).type
-    except (RuntimeError, TypeError):
-        kind = None
-    if kind not in ("cpu", "cuda"):
-        raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {device!r}")
-    if str(device).startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device: {device!r} requested but this torch build ({torch.__version__}) has no CUDA "
-                         "device; use --device cpu")
+    check_device(device, hint="; use --device cpu")
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ValueError(f"{out_dir}: the output folder exists as a file")
     for path in paths if out_dir is not None else ():
