@@ -2,6 +2,7 @@ import math
 import re
 
 import pytest
+import torch
 
 from facenormals.training import TrainConfig
 
@@ -21,10 +22,25 @@ def test_learning_rate_schedule_warmup_then_cosine():
                                          ("precision", "fp8"), ("workers", -1), ("max_minutes", 0.0),
                                          ("lr", float("inf")), ("sigma", float("nan")), ("workers", True),
                                          ("threads", 1.5), ("threads", True), ("landmark_weight", float("inf")),
-                                         ("seed", -1), ("seed", 2**63), ("seed", 1.5)])
+                                         ("seed", -1), ("seed", 2**63), ("seed", 1.5), ("sigma", 1e-9),
+                                         ("sigma", 0.4), ("max_minutes", float("inf"))])
 def test_bad_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         TrainConfig(data="d", out="o", **{field: value})
+
+
+def test_the_narrowest_landmark_sigma_still_decodes_to_its_points():
+    """sigma=1e-9 was accepted: every target map was 0 and the network learned to find no landmark."""
+    from facenormals.data.landmark_maps import landmark_maps, landmarks_from_maps
+    from facenormals.training.config import MIN_SIGMA
+
+    points = torch.rand(2, 24, 2, generator=torch.Generator().manual_seed(3)) * 100 + 14
+    visible = torch.ones(2, 24, dtype=torch.bool)
+    found, found_visible = landmarks_from_maps(landmark_maps(points, visible, (128, 128), MIN_SIGMA))
+    assert found_visible.all() and (found - points).norm(dim=-1).max() < 0.05
+    assert TrainConfig(data="d", out="o", sigma=MIN_SIGMA).sigma == MIN_SIGMA
+    with pytest.raises(ValueError, match="sigma: expected a landmark Gaussian of at least 0.5 px .*got 0.3"):
+        TrainConfig(data="d", out="o", sigma=0.3)
 
 
 def test_an_output_path_that_is_a_file_is_refused(tmp_path):

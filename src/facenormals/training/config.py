@@ -22,6 +22,11 @@ MAX_WORKERS = 256
 #: overflow that named no option.
 MAX_LR = 1e4
 
+#: The narrowest landmark Gaussian a config takes, in pixels: below it the target maps do not decode
+#: to their own points (``landmarks_from_maps`` is 0.2-0.4 px off at sigma 0.2-0.4, loses peaks under
+#: its threshold below 0.3, and at 1e-9 every map is 0), so the network would learn blank or biased maps.
+MIN_SIGMA = 0.5
+
 #: The device names training takes besides "auto": "cpu", "cuda" or "cuda:N".
 _DEVICE_NAME = re.compile(r"cpu|cuda(:[0-9]+)?")
 
@@ -62,7 +67,7 @@ class TrainConfig:
             under the landmark Gaussians weigh ``1 + α·Z`` (0: the paper's plain squared error, which
             learned nothing but empty maps in the first 2,000 steps of our CPU run).
         foreground_weight: weight of the foreground cross-entropy (our addition).
-        sigma: landmark Gaussian standard deviation in pixels.
+        sigma: landmark Gaussian standard deviation in pixels, at least :data:`MIN_SIGMA`.
         workers: DataLoader worker processes per training process (at most ``MAX_WORKERS``, 256).
         device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
         precision: ``"bf16"`` (autocast), ``"fp32"`` or ``"auto"`` (bf16 where the hardware has
@@ -130,6 +135,9 @@ class TrainConfig:
                 if not (_is_real(value) and math.isfinite(value) and (value > 0 if positive else value >= 0)):
                     raise ValueError(f"{name}: expected a finite {'positive' if positive else 'non-negative'} value, "
                                      f"got {value!r}")
+        if self.sigma < MIN_SIGMA:
+            raise ValueError(f"sigma: expected a landmark Gaussian of at least {MIN_SIGMA:g} px (narrower target "
+                             f"maps do not decode to their own points), got {self.sigma!r}")
         if self.lr > MAX_LR:
             raise ValueError(f"lr: expected a learning rate of at most {MAX_LR:g}, got {self.lr!r}")
         if not (_is_real(self.ema_decay) and 0.0 <= self.ema_decay < 1.0):
@@ -143,8 +151,8 @@ class TrainConfig:
         if self.threads is not None and (not isinstance(self.threads, int) or isinstance(self.threads, bool)
                                          or self.threads < 1):
             raise ValueError(f"threads: expected a positive integer or None, got {self.threads!r}")
-        if self.max_minutes is not None and not (_is_real(self.max_minutes) and self.max_minutes > 0):
-            raise ValueError(f"max_minutes: expected a positive value or None, got {self.max_minutes!r}")
+        if self.max_minutes is not None and not (_is_real(self.max_minutes) and 0 < self.max_minutes < math.inf):
+            raise ValueError(f"max_minutes: expected a finite positive value or None (no limit), got {self.max_minutes!r}")
 
     def _normalise_types(self) -> None:
         """Paths become ``str``, NumPy (or other) integers and reals plain ``int`` and ``float``: the
