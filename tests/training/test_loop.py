@@ -205,6 +205,23 @@ def test_a_failed_log_rewrite_keeps_the_log(tmp_path, monkeypatch):
     assert [int(r["step"]) for r in csv.DictReader(log.open())] == [1, 2, 3, 4, 5]
 
 
+def test_a_row_cut_off_by_a_kill_is_dropped_not_run_into(tmp_path):
+    """Regression: a last row without its line end (a kill in the middle of a write) was kept, and
+    the next row appended after a resume ran into it (``3,0.2`` + ``4,0.1`` read as one row)."""
+    from facenormals.training.loop import _truncate_csv
+
+    log = tmp_path / "log.csv"
+    log.write_text("step,loss\n1,0.5\n2,0.4\n3,0.")
+    _truncate_csv(log, 5, ["step", "loss"])
+    assert log.read_bytes() == b"step,loss\r\n1,0.5\r\n2,0.4\r\n"
+    log.write_text("step,lo")  # not even the header whole: like an empty log
+    _truncate_csv(log, 5, ["step", "loss"])
+    assert not log.exists()
+    log.write_text("step,loss\r\n1,0.5\r\n")  # whole rows with csv's own line ends: untouched
+    _truncate_csv(log, 5, ["step", "loss"])
+    assert log.read_bytes() == b"step,loss\r\n1,0.5\r\n"
+
+
 def test_a_foreign_or_damaged_log_is_named_and_an_old_one_gets_the_new_columns(tmp_path):
     """Regression: rows were appended under a foreign header, and a damaged row or a log without a
     step column failed with a bare KeyError / int() message."""

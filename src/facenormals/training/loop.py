@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import signal
 import time
 from dataclasses import dataclass
@@ -120,19 +121,25 @@ def _truncate_csv(path: Path, step: int, fields: list[str]) -> None:
 
     A log written before a column was added gets the current header (its rows leave the new columns
     empty), so that rows appended now line up; a file that is no log of ours is an error naming it,
-    rather than rows appended under a foreign header."""
+    rather than rows appended under a foreign header. A last line without its line end was cut off
+    by a kill in the middle of a write: it is dropped (appending would have run the next row into it)."""
     if not path.exists():
         return
     with path.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        rows, header = list(reader), reader.fieldnames
+        text = handle.read()
+    torn = bool(text) and not text.endswith("\n")
+    if torn and "\n" not in text:  # not even the header was written whole: a log like none
+        path.unlink()
+        return
+    reader = csv.DictReader(io.StringIO(text[:text.rindex("\n") + 1] if torn else text, newline=""))
+    rows, header = list(reader), reader.fieldnames
     if header is None:  # empty: a run killed before its first row was flushed
         return
     if "step" not in header or not set(header) <= set(fields):
         raise ValueError(f"{path}: not a facenormals training log (columns {header}, expected {fields}); move "
                          "the file away or choose another --out")
     kept = [r for line, r in enumerate(rows, start=2) if _logged_step(path, r, line) <= step]
-    if len(kept) != len(rows) or header != fields:  # rewritten beside and renamed over it: an error leaves the old log
+    if torn or len(kept) != len(rows) or header != fields:  # rewritten beside and renamed over it: an error leaves the old log
         with atomic_write(path) as part, part.open("w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=fields, restval="")
             writer.writeheader()
