@@ -442,3 +442,70 @@ def test_an_unconverged_pre_alignment_is_warned_about_by_view(model, head, monke
                                             r"MAX_ITERATIONS\)"):
         result = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, rounds=1)
     assert torch.isfinite(result.vertices).all()
+
+
+def _mirror_order(names):
+    from facenormals.models.landmarks import LANDMARK_PAIRS
+
+    order = list(range(len(names)))
+    for a, b in LANDMARK_PAIRS:
+        if a in names and b in names:
+            order[names.index(a)], order[names.index(b)] = names.index(b), names.index(a)
+    return order
+
+
+@pytest.mark.parametrize("mistake", ["left and right swapped", "(row, column)"])
+def test_landmarks_in_another_convention_are_warned_about_not_fitted_silently(model, head, mistake):
+    """Regression: landmarks with the subject's left and right swapped, or given as (row, column),
+    fitted a head turned away from the camera (yaw near 180 deg), status CONVERGED, without a word."""
+    from facenormals.fitting import FacingAwayWarning
+
+    obs = render_oracle_views(model, head, [0.0, 30.0])
+    landmarks = (obs.landmarks[..., _mirror_order(model.landmark_names), :] if mistake.startswith("left")
+                 else obs.landmarks.flip(-1))
+    with pytest.warns(FacingAwayWarning, match=r"faces away from the camera in view 0 \(yaw [+-]1\d\d deg, cosine "
+                                               r"0\.\d\d\), view 1 .*subject's left and right"):
+        fit = fit_head(obs.normal_maps, landmarks, model, intrinsics=obs.intrinsics)
+    assert bool((fit.landmark_facing > 0.3).all())
+
+
+def test_landmark_facing_is_the_mean_cosine_of_the_seen_landmarks_with_their_rays(model, head):
+    """FitResult.landmark_facing against a loop over the landmarks: the mean of n · X / |X| in the
+    camera frame, over the given landmarks only (NaN for a view without any)."""
+    import math
+    import warnings
+
+    from facenormals.mesh import vertex_normals
+
+    obs = render_oracle_views(model, head, [-30.0, 30.0])
+    mask = torch.isfinite(obs.landmarks).all(-1)
+    mask[0, 1, :5] = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a head facing the camera: no warning
+        fit = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, landmark_mask=mask, rounds=1)
+    normals = vertex_normals(fit.vertices, fit.faces)[0].double()
+    for v in range(2):
+        R, t = fit.rotation[0, v].double(), fit.translation[0, v].double()
+        cosines = []
+        for j, i in enumerate(model.landmark_indices.tolist()):
+            if mask[0, v, j]:
+                X, n = R @ (fit.vertices[0, i].double() + t), R @ normals[i]
+                cosines.append(float(n @ X) / float(X.norm()))
+        assert math.isclose(float(fit.landmark_facing[0, v]), sum(cosines) / len(cosines), abs_tol=1e-5)
+        assert float(fit.landmark_facing[0, v]) < -0.3
+
+
+def test_fitted_angles_are_wrapped_to_the_conventions_range(model, head):
+    """A start a full turn off (the same rotation) fitted yaw 390 deg; the angles are now in (-pi, pi]."""
+    import math
+
+    obs = render_oracle_views(model, head, [30.0])
+    turned = obs.angles + torch.tensor([2 * math.pi, -2 * math.pi, 2 * math.pi])
+    fit = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics,
+                   initial_pose=(turned, obs.translation), rounds=1)
+    assert bool((fit.angles > -math.pi).all() and (fit.angles <= math.pi).all())
+    assert abs(math.degrees(float(fit.angles[0, 0, 2])) - 30.0) < 1.0
+    from facenormals.geometry import euler_to_rotation_matrix
+
+    torch.testing.assert_close(fit.rotation[0, 0], euler_to_rotation_matrix(fit.angles[0])[0])
+    torch.testing.assert_close(fit.rotation[0, 0], euler_to_rotation_matrix(obs.angles[0])[0], atol=2e-2, rtol=0)

@@ -25,6 +25,7 @@ from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
 from facenormals.fitting.subsample import grid_subset
 from facenormals.geometry import euler_to_rotation_matrix, transform_points
+from facenormals.mesh import vertex_normals
 from facenormals.models import MorphableModel
 from facenormals.optim import LMStatus, levenberg_marquardt
 
@@ -40,7 +41,8 @@ class FitResult:
         faces: ``(F, 3)`` triangles.
         shape_coeffs: ``(B, K)``; expression_coeffs: ``(B, E)`` or ``None``.
         angles, rotation, translation, intrinsics: per view, ``(B, V, 3)``, ``(B, V, 3, 3)``,
-            ``(B, V, 3)`` and ``(B, V, 3)`` (``X_c = R (p + t)``, intrinsics ``(f, u0, v0)``).
+            ``(B, V, 3)`` and ``(B, V, 3)`` (``X_c = R (p + t)``, intrinsics ``(f, u0, v0)``); the
+            angles ``(roll, pitch, yaw)`` in radians, each wrapped to (−π, π].
         energies: term name → ``(B,)`` weighted energy (``normals``, ``landmarks``, ``prior``, ...).
         iterations: ``(B,)`` LM iterations over all rounds.
         status: ``(B,)`` :class:`~facenormals.optim.LMStatus` of the last round; reasons: its reasons.
@@ -51,6 +53,10 @@ class FitResult:
             landmarks that the Cauchy weights ignore.
         prealignment_rms_px: ``(B, V)`` landmark RMS of the pre-alignment (NaN when ``initial_pose``
             was given).
+        landmark_facing: ``(B, V)`` :func:`~facenormals.fitting.facing_cosine` of the fitted head's
+            given landmarks in each view: negative where they face the camera, as seen landmarks do;
+            above :data:`~facenormals.fitting.FACING_AWAY_COSINE` the head faces away and
+            :func:`fit_head` warns (:class:`FacingAwayWarning`); NaN for a view without landmarks.
         timings: seconds of the pre-alignment (``prealign_s``) and of the whole fit (``total_s``).
 
     ``energies`` are the terms as minimised in the last round: ``energies["normals"]`` is λN·EN
@@ -76,6 +82,7 @@ class FitResult:
     landmark_rms_px: Tensor
     landmark_median_px: Tensor
     prealignment_rms_px: Tensor
+    landmark_facing: Tensor
     timings: dict[str, float] = field(default_factory=dict)
 
     def _index(self, value: object, name: str, count: int) -> int:
@@ -247,6 +254,47 @@ def _check_normal_axes(normal_maps: Tensor, foreground: Tensor, model: Morphable
         f"(cosine {float(cosine[view, axis]):.2f} over {int(count[view])} pixels): is the map's {name} axis flipped "
         f"({'a mirrored map' if name == 'x' else 'y up'}; facenormals expects OpenCV's camera frame, x right and y "
         "down, docs/conventions.md), or do the landmarks not belong to this map?")
+
+
+class FacingAwayWarning(RuntimeWarning):
+    """:func:`fit_head` ended on a head turned away from the camera in some view
+    (:attr:`FitResult.landmark_facing` above :data:`~facenormals.fitting.FACING_AWAY_COSINE`)."""
+
+
+def _landmark_facing(vertices: Tensor, model: MorphableModel, rotation: Tensor, translation: Tensor,
+                     landmark_mask: Tensor) -> Tensor:
+    """``(B, V)`` :func:`facing_cosine` of the fitted heads' given landmarks per view, NaN without any."""
+    B, V = rotation.shape[:2]
+    index = model.landmark_indices
+    mask = landmark_mask.reshape(B * V, -1)
+    if not index.numel():
+        return rotation.new_full((B, V), float("nan"))
+    points = vertices[:, index]  # (B, L, 3)
+    normals = vertex_normals(vertices, model.faces)[:, index]
+    cosine = facing_cosine(points[:, None].expand(B, V, -1, 3).reshape(B * V, -1, 3),
+                           normals[:, None].expand(B, V, -1, 3).reshape(B * V, -1, 3),
+                           rotation.reshape(B * V, 3, 3), translation.reshape(B * V, 3), mask)
+    return cosine.masked_fill(~mask.any(-1), float("nan")).reshape(B, V)
+
+
+def _warn_facing_away(facing: Tensor, angles: Tensor) -> None:
+    """Warn, naming the views, where the fitted head faces away from the camera: landmarks given as
+    seen cannot sit on its far side, so they are most likely in another convention (left and right
+    swapped, or (row, column)), and the fit, reported converged, is not a face seen from the front."""
+    away = (facing > FACING_AWAY_COSINE).nonzero().tolist()
+    if away:
+        B = facing.shape[0]
+        views = ", ".join(f"view {v}{f' of subject {b}' if B > 1 else ''} (yaw {math.degrees(float(angles[b, v, 2])):+.0f}"
+                          f" deg, cosine {float(facing[b, v]):.2f})" for b, v in away)
+        warnings.warn(f"fit_head: the fitted head faces away from the camera in {views}, with the landmarks said "
+                      "to be seen on its far side: are they in model.landmark_names order with the subject's left "
+                      "and right (not the image's), and in (x, y) = (column, row) pixels? See "
+                      "FitResult.landmark_facing", FacingAwayWarning, stacklevel=3)
+
+
+def _wrap_angles(angles: Tensor) -> Tensor:
+    """Angles wrapped to (−π, π] (the same rotations)."""
+    return math.pi - torch.remainder(math.pi - angles, 2 * math.pi)
 
 
 def _warn_unconverged_prealignment(status: Tensor, rms_px: Tensor) -> None:
@@ -485,13 +533,17 @@ def fit_head(
     if lm_errors.shape[-1] == 0:  # a model without landmarks (fitted from a given pose)
         lm_errors = lm_errors.new_full((*lm_errors.shape[:-1], 1), float("nan"))
     lm_rms = lm_errors.square().nanmean(-1).sqrt()
+    vertices, angles = problem.vertices(x), _wrap_angles(p["angles"])
+    rotation = euler_to_rotation_matrix(angles.reshape(-1, 3)).reshape(B, V, 3, 3)
+    facing = _landmark_facing(vertices, model, rotation, p["translation"], landmark_mask)
+    _warn_facing_away(facing, angles)
     return FitResult(
-        vertices=problem.vertices(x),
+        vertices=vertices,
         faces=model.faces,
         shape_coeffs=p["shape"],
         expression_coeffs=p["expression"],
-        angles=p["angles"],
-        rotation=euler_to_rotation_matrix(p["angles"].reshape(-1, 3)).reshape(B, V, 3, 3),
+        angles=angles,
+        rotation=rotation,
         translation=p["translation"],
         intrinsics=p["intrinsics"].expand(B, V, 3).clone(),  # not fitted, it is the caller's tensor
         energies=energies,
@@ -502,5 +554,6 @@ def fit_head(
         landmark_rms_px=lm_rms,
         landmark_median_px=lm_errors.nanmedian(-1).values,
         prealignment_rms_px=pre_rms,
+        landmark_facing=facing,
         timings={"prealign_s": t_pre - start, "total_s": time.perf_counter() - start},
     )

@@ -28,12 +28,11 @@ from torch import Tensor
 from facenormals.core.check import check_floating, check_nonnegative, check_shape, check_unit_range
 from facenormals.core.files import StagedFiles
 from facenormals.data.landmark_maps import landmarks_from_maps
-from facenormals.fitting import (FACING_AWAY_COSINE, FitResult, FitWeights, PoseEstimate, drop_hidden_landmarks,
-                                 facing_cosine, fit_head)
+from facenormals.fitting import (FACING_AWAY_COSINE, FacingAwayWarning, FitResult, FitWeights, PoseEstimate,
+                                 drop_hidden_landmarks, fit_head)
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.geometry import euler_to_rotation_matrix, project_points
-from facenormals.mesh import vertex_normals
 from facenormals.models import LANDMARK_NAMES, MorphableModel
 from facenormals.reconstruct.detect import NoFaceError, check_crop_box
 from facenormals.nn.mirror import mirror_averaged
@@ -357,11 +356,13 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
                               "landmarks, too few (< 4) to pre-align a head: is there a face in its crop? (a "
                               "profile view may need its face box, --box X,Y,W,H)")
     start = time.perf_counter()
-    fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics, **fit_options)
+    with warnings.catch_warnings():  # a head facing away is refused below, naming the photo
+        warnings.simplefilter("ignore", FacingAwayWarning)
+        fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics, **fit_options)
     if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
         fit.prealignment_rms_px = inputs.prealignment.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
-    _require_facing_heads(fit, model, inputs.landmarks, names, used)
+    _require_facing_heads(fit, names, used)
     dropped = inputs.dropped.sum(1).tolist()
     for v in range(V):
         f_v, median = float(fit.intrinsics[0, v, 0]), float(fit.landmark_median_px[0, v])
@@ -375,20 +376,14 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     return maps, fit
 
 
-def _require_facing_heads(fit: FitResult, model: MorphableModel, landmarks: Tensor, names: list[str],
-                          used: list[int]) -> None:
+def _require_facing_heads(fit: FitResult, names: list[str], used: list[int]) -> None:
     """Raise :class:`NoFaceError` naming a view whose found landmarks the fit placed on a head turned
-    away from the camera (:func:`~facenormals.fitting.facing_cosine` above ``FACING_AWAY_COSINE``):
-    landmarks that are seen cannot face away. Spurious peaks in a crop without a face (a wrong
-    ``--box``, a black image) fitted such heads at 130 deg of yaw, "converged"; on held-out renders
-    at any yaw the fitted heads score at most -0.18."""
-    V, index = landmarks.shape[0], model.landmark_indices
-    points = fit.vertices[:, index].expand(V, -1, -1)
-    normals = vertex_normals(fit.vertices, fit.faces)[:, index].expand(V, -1, -1)
-    cosine = facing_cosine(points, normals, euler_to_rotation_matrix(fit.angles[0]), fit.translation[0],
-                           torch.isfinite(landmarks).all(-1).to(points.device))
-    for v in range(V):
-        if float(cosine[v]) > FACING_AWAY_COSINE:
+    away from the camera (:attr:`FitResult.landmark_facing` above ``FACING_AWAY_COSINE``): landmarks
+    that are seen cannot face away. Spurious peaks in a crop without a face (a wrong ``--box``, a
+    black image) fitted such heads at 130 deg of yaw, "converged"; on held-out renders at any yaw
+    the fitted heads score at most -0.18."""
+    for v, cosine in enumerate(fit.landmark_facing[0].tolist()):
+        if cosine > FACING_AWAY_COSINE:
             yaw = math.degrees(float(fit.angles[0, v, 2]))
             raise NoFaceError(f"{names[v]}: the {used[v]} landmarks the network found fit only a head turned away "
                               f"from the camera (yaw {yaw:.0f} deg): is there a face in its crop? (a profile view "
