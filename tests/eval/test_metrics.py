@@ -107,6 +107,25 @@ def test_point_to_plane_uses_the_surface_not_the_vertices():
                                torch.tensor([-(2**0.5)], dtype=torch.float64))
 
 
+def test_point_to_plane_normalises_non_unit_normals():
+    """The reference normals are normalised ("unit normals n_i (normalised here)"): against a tilted
+    plane, whose closest point to p is its orthogonal projection, e_i = (q_i - p_i) · n_i / ‖n_i‖ in
+    numpy for normals of lengths 1e-6 to 1e6 in random directions, in float64 and float32."""
+    rng = np.random.default_rng(8)
+    vertices, faces = grid(n=11, size=200.0, z=lambda x, y: 0.3 * x - 0.2 * y + 5.0)
+    unit = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])  # the plane's normal
+    points = np.concatenate([rng.uniform(-40, 40, (60, 2)), rng.uniform(-20, 30, (60, 1))], 1)
+    normals = rng.normal(size=(60, 3)) * 10.0 ** rng.uniform(-6, 6, (60, 1))
+    closest = points - ((points - [0.0, 0.0, 5.0]) @ unit)[:, None] * unit  # the projection onto the plane
+    expected = ((closest - points) * normals).sum(1) / np.linalg.norm(normals, axis=1)
+    got = point_to_plane_errors(torch.from_numpy(points), torch.from_numpy(normals), vertices, faces)
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-9, atol=1e-9)
+    assert np.abs(expected).max() > 5.0  # errors of all sizes, not just zeros
+    single = point_to_plane_errors(torch.from_numpy(points).float(), torch.from_numpy(normals).float(), vertices, faces)
+    assert single.dtype == torch.float32
+    np.testing.assert_allclose(single.numpy(), expected, rtol=1e-4, atol=1e-4)
+
+
 def test_point_to_plane_refuses_zero_normals():
     vertices, faces = grid(n=3, size=100.0)
     normals = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]], dtype=torch.float64)

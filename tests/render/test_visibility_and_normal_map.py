@@ -319,3 +319,73 @@ def test_half_precision_points_go_to_their_own_pixel_far_from_the_origin(dtype):
     point, depth = torch.tensor([[[column, 1.0]]], dtype=dtype), torch.tensor([[2.0]], dtype=dtype)
     splat = splat_zbuffer(point, depth, (3, size), 0)
     assert torch.isfinite(splat[0]).nonzero().tolist() == [[1, column]]
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2])
+def test_splat_zbuffer_gap_fill_against_a_loop(radius):
+    """Each point inside the image and in front of the camera writes its depth to the pixel whose
+    square holds it (the nearest depth wins); a pixel no point wrote takes the least written depth of
+    its (2r+1)² window (clipped at the image's edges), inf where there is none; a written pixel keeps
+    its own depth, even beside a nearer one."""
+    from facenormals.render import splat_zbuffer
+
+    g = torch.Generator().manual_seed(5)
+    height, width = 9, 11
+    pixels = torch.rand(2, 30, 2, generator=g, dtype=torch.float64) * torch.tensor([width + 1.0, height + 1.0]) - 1.0
+    depth = torch.rand(2, 30, generator=g, dtype=torch.float64) * 20 + 1.0
+    depth[0, :3] = -depth[0, :3]  # behind the camera
+    pair = ((pixels[1] + 0.5).floor() == torch.tensor([4.0, 4.0], dtype=torch.float64)).all(-1) | \
+        ((pixels[1] + 0.5).floor() == torch.tensor([5.0, 4.0], dtype=torch.float64)).all(-1)
+    pixels[1, pair] = -3.0  # off the image, leaving the pixels (4, 4) and (5, 4) to...
+    pixels[1, 0], depth[1, 0] = torch.tensor([4.2, 3.9], dtype=torch.float64), 50.0  # ...a far point...
+    pixels[1, 1], depth[1, 1] = torch.tensor([5.1, 4.3], dtype=torch.float64), 0.5  # ...beside a near one
+    got = splat_zbuffer(pixels, depth, (height, width), radius)
+    assert got.shape == (2, height, width) and got.dtype == torch.float64
+    for b in range(2):
+        written = [[math.inf] * width for _ in range(height)]
+        for i in range(30):
+            u, v = math.floor(float(pixels[b, i, 0]) + 0.5), math.floor(float(pixels[b, i, 1]) + 0.5)
+            if 0 <= u < width and 0 <= v < height and float(depth[b, i]) > 0:
+                written[v][u] = min(written[v][u], float(depth[b, i]))
+        for y in range(height):
+            for x in range(width):
+                expected = written[y][x]
+                if math.isinf(expected):
+                    expected = min(written[yy][xx] for yy in range(max(0, y - radius), min(height, y + radius + 1))
+                                   for xx in range(max(0, x - radius), min(width, x + radius + 1)))
+                assert float(got[b, y, x]) == expected, (b, y, x, radius)
+    assert float(got[1, 4, 4]) == 50.0 and float(got[1, 4, 5]) == 0.5
+    empty = torch.isinf(got).sum().item()
+    assert (empty > 0) if radius == 0 else (empty < torch.isinf(splat_zbuffer(pixels, depth, (height, width), 0)).sum())
+
+
+def test_visible_vertices_min_facing_against_a_loop():
+    """A vertex is front-facing when n · X_c / ‖X_c‖ < -min_facing (strictly), checked with a loop for
+    margins of either sign; visibility is that and the occlusion test of unoccluded_points."""
+    g = torch.Generator().manual_seed(6)
+    normals = torch.nn.functional.normalize(torch.randn(2, 200, 3, generator=g, dtype=torch.float64), dim=-1)
+    camera = torch.randn(2, 200, 3, generator=g, dtype=torch.float64) * 40
+    camera[..., 2] += 300.0  # in front of the camera, rays up to ~10° off the axis
+    camera[0, :50] *= 10.0  # farther points: the same rays, the same cosines
+    K = torch.tensor([[100.0, 15.5, 15.5]] * 2, dtype=torch.float64)
+    pixels, depth = project_points(camera, torch.eye(3, dtype=torch.float64).expand(2, 3, 3),
+                                   torch.zeros(2, 3, dtype=torch.float64), K)
+    zbuffer = torch.full((2, 32, 32), math.inf, dtype=torch.float64)
+    zbuffer[:, :, :12] = 290.0  # hides the points behind it on the left of the image
+    occlusion = unoccluded_points(pixels, depth, zbuffer, tolerance=3.0)
+    assert 0 < int(occlusion.sum()) < 400
+    for min_facing in (-0.3, 0.0, 0.2, 0.6):
+        got = visible_vertices(pixels, depth, normals, camera, zbuffer, tolerance=3.0, min_facing=min_facing)
+        fronts = 0
+        for b in range(2):
+            for i in range(200):
+                n, x = normals[b, i].tolist(), camera[b, i].tolist()
+                cosine = sum(nk * xk for nk, xk in zip(n, x)) / math.sqrt(sum(xk * xk for xk in x))
+                fronts += cosine < -min_facing
+                assert bool(got[b, i]) == (cosine < -min_facing and bool(occlusion[b, i])), (min_facing, b, i)
+        assert 0 < fronts < 400, min_facing
+    # the margin is strict: a normal along the ray back to the camera (cosine -1) fails a margin of 1
+    n, x = torch.tensor([[[0.0, 0.0, -1.0]]]), torch.tensor([[[0.0, 0.0, 5.0]]])
+    uv, z, zbuf = torch.tensor([[[1.0, 1.0]]]), torch.tensor([[5.0]]), torch.full((1, 3, 3), 5.0)
+    assert visible_vertices(uv, z, n, x, zbuf, min_facing=0.999).tolist() == [[True]]
+    assert visible_vertices(uv, z, n, x, zbuf, min_facing=1.0).tolist() == [[False]]
