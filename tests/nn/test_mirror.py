@@ -148,7 +148,7 @@ def test_the_average_of_asymmetric_maps_follows_its_formula():
     """The sphere above is mirror-symmetric and its logits zero, so ignoring the mirrored normals or
     averaging the foreground wrongly passed; here each term is checked against the formula."""
     net = _Fixed()
-    avg = mirror_averaged(net, torch.rand(1, 3, 6, 8))
+    avg = mirror_averaged(net, torch.rand(1, 3, 6, 8, generator=torch.Generator().manual_seed(0)))
     mirrored_normals = net.n.flip(-1) * torch.tensor([-1.0, 1.0, 1.0]).view(1, 3, 1, 1)
     torch.testing.assert_close(avg.normals, torch.nn.functional.normalize(net.n + mirrored_normals, dim=1))
     torch.testing.assert_close(avg.foreground_logits, 0.5 * (net.f + net.f.flip(-1)))

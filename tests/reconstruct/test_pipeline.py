@@ -289,6 +289,7 @@ def test_a_photo_view_without_a_box_is_its_whole_crop_at_any_size():
 
 
 def test_predict_maps_shapes_and_nan_for_missing_landmarks():
+    torch.manual_seed(0)
     net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
     with torch.no_grad():
         net.head.bias[3:27] = -5.0  # no landmark map reaches the threshold
@@ -579,6 +580,7 @@ def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
     from facenormals.nn import NormalLandmarkUNet
     from facenormals.reconstruct import pipeline, reconstruct_views
 
+    torch.manual_seed(0)
     net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
     crops = torch.rand(2, 3, 32, 32)
     maps = pipeline.predict_maps(net, crops)
