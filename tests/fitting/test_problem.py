@@ -143,14 +143,27 @@ def test_per_subject_vertex_subsets():
 @pytest.mark.parametrize(
     "field,value,match",
     [("normals", -1.0, r"FitWeights.normals: expected a finite number >= 0, got -1.0"),
-     ("prior", float("nan"), r"FitWeights.prior: expected a finite number >= 0"),
-     ("landmarks", "a", r"FitWeights.landmarks: expected a finite number >= 0, got 'a'"),
+     ("prior", float("nan"), r"FitWeights.prior: expected a finite number, got nan"),
+     ("landmarks", "a", r"FitWeights.landmarks: expected a real number, got str 'a'"),
+     ("landmarks", "0.8", r"FitWeights.landmarks: expected a real number, got str '0.8'"),
+     ("focal_std", "0.2", r"FitWeights.focal_std: expected a real number, got str '0.2'"),
+     ("normals", True, r"FitWeights.normals: expected a real number, got bool"),
      ("center_std", 0.0, r"FitWeights.center_std: expected a finite number > 0, got 0.0")],
 )
 def test_fit_weights_check_their_values(field, value, match):
     with pytest.raises(ValueError, match=match):
         FitWeights(**{field: value})
     assert FitWeights(normals=0.0).normals == 0.0  # landmarks only is allowed
+
+
+def test_fit_weights_hold_plain_floats():
+    """Regression: FitWeights(landmarks="0.8") was accepted and the fit failed deep inside with a
+    TypeError; numbers of other types are kept as plain floats."""
+    import numpy as np
+
+    weights = FitWeights(normals=np.float32(0.5), landmarks=torch.tensor(0.25, dtype=torch.float64), prior=2)
+    assert (weights.normals, weights.landmarks, weights.prior) == (0.5, 0.25, 2.0)
+    assert all(type(getattr(weights, name)) is float for name in ("normals", "landmarks", "prior"))
 
 
 def test_problem_checks_its_inputs():

@@ -36,7 +36,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch._C._functorch import is_functorch_wrapped_tensor
 
-from facenormals.core.check import check_all_finite, check_floating, check_shape
+from facenormals.core.check import check_all_finite, check_floating, check_real, check_shape
 from facenormals.energy import prior_residuals
 from facenormals.energy.residuals import _foreground_at, _landmark_differences, _support_foreground
 from facenormals.fitting.rings import RingRows, Rings
@@ -82,13 +82,11 @@ class FitWeights:
         for name, positive in (("normals", False), ("landmarks", False), ("prior", False),
                                ("expression_prior", False), ("focal_std", True), ("center_std", True)):
             value = getattr(self, name)
-            try:
-                number = float(value)
-            except (TypeError, ValueError):
-                number = float("nan")
-            if not (math.isfinite(number) and (number > 0 if positive else number >= 0)):
+            number = check_real(value, f"FitWeights.{name}")  # a string from a config file failed deep in the fit
+            if not (number > 0 if positive else number >= 0):
                 raise ValueError(f"FitWeights.{name}: expected a finite number {'> 0' if positive else '>= 0'}, "
                                  f"got {value!r}")
+            object.__setattr__(self, name, number)  # a plain float: numpy or 0-d tensor values too
 
 
 @dataclass
