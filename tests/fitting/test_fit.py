@@ -509,3 +509,18 @@ def test_fitted_angles_are_wrapped_to_the_conventions_range(model, head):
 
     torch.testing.assert_close(fit.rotation[0, 0], euler_to_rotation_matrix(fit.angles[0])[0])
     torch.testing.assert_close(fit.rotation[0, 0], euler_to_rotation_matrix(obs.angles[0])[0], atol=2e-2, rtol=0)
+
+
+def test_inputs_that_require_gradients_fit_as_data_without_a_warning(model, head):
+    """Regression: maps straight from a network (requires_grad) raised torch's "Converting a tensor with
+    requires_grad=True to a scalar" warning from inside fit_head."""
+    import warnings
+
+    obs = render_oracle_views(model, head, [0.0], image_size=64)
+    plain = fit_head(obs.normal_maps, obs.landmarks, model, intrinsics=obs.intrinsics, rounds=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = fit_head(obs.normal_maps.clone().requires_grad_(), obs.landmarks.clone().requires_grad_(), model,
+                       intrinsics=obs.intrinsics.clone().requires_grad_(), rounds=1)
+    assert not fit.vertices.requires_grad
+    torch.testing.assert_close(fit.vertices, plain.vertices, rtol=0, atol=0)

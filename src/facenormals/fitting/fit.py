@@ -382,7 +382,8 @@ def fit_head(
             head moves by about a pixel: re-rasterising it changes the result by ~1 % (docs/accuracy.md).
 
     Returns:
-        A :class:`FitResult`.
+        A :class:`FitResult`. The fit is not differentiable: inputs that require gradients are
+        fitted as data (detached), and the result holds no graph.
 
     Raises:
         ValueError: on bad shapes or types, inputs on another device than the model, NaN normal maps
@@ -441,12 +442,13 @@ def fit_head(
     check_floating(normal_maps, "normal_maps")  # an integer map would truncate the unit normals to 0
     check_floating(landmarks, "landmarks")
     _check_finite_views(normal_maps, "normal_maps")
-    normal_maps, landmarks = normal_maps.to(dtype), landmarks.to(dtype)
+    # the LM solve is not differentiable: a network's output is fitted as data, without its graph
+    normal_maps, landmarks = normal_maps.detach().to(dtype), landmarks.detach().to(dtype)
     if intrinsics is None:
         intrinsics = torch.tensor([float(W), (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device).expand(B, V, 3)
     intrinsics = _as_views(intrinsics, "intrinsics", [3], views)
     check_floating(intrinsics, "intrinsics")  # a bool prior read as f = 1 px and fitted a garbage head
-    intrinsics = intrinsics.to(dtype)
+    intrinsics = intrinsics.detach().to(dtype)
     check_finite(intrinsics, "intrinsics")
     if not bool((intrinsics[..., 0] > 0).all()):
         raise ValueError(f"intrinsics: expected focal lengths f > 0, got {intrinsics[..., 0].min().item():g}")
@@ -481,7 +483,7 @@ def fit_head(
                                for p, n in zip(initial_pose, ("angles", "translation")))
         check_floating(angles, "initial_pose angles")  # integer angles truncate, a bool translation is 1 mm
         check_floating(translation, "initial_pose translation")
-        angles, translation = angles.to(dtype), translation.to(dtype)
+        angles, translation = angles.detach().to(dtype), translation.detach().to(dtype)
         check_finite(angles, "initial_pose angles")
         check_finite(translation, "initial_pose translation")
         pre_rms = torch.full((B, V), float("nan"), dtype=dtype, device=device)
