@@ -157,7 +157,9 @@ def depth_errors(
     reconstruction (open eyes, mouth) does not score the inside of the back of the head. It equals
     the difference of two orthographic depth maps rendered along that direction wherever both
     surfaces are single-layered. For identical meshes it is 0 at every vertex whose vertex normal
-    faces the viewer.
+    faces the viewer; robustly to rounding only where every triangle around it faces the viewer too
+    (at a silhouette vertex the line may slip past the front-facing surface onto another layer:
+    :func:`~facenormals.eval.evaluate_reconstruction` leaves such vertices out).
 
     Args:
         reference_vertices: reference points (mm).

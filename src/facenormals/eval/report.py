@@ -17,8 +17,10 @@ Each alignment is
    point-to-plane RMSE against the prediction's surface, per-vertex correspondence RMSE when the
    topologies agree (ICP errors can flatter a reconstruction that slides along the surface), and
    absolute depth-error statistics along the frontal viewing direction over the face-region
-   vertices that face the viewer (reference normal · viewing direction < 0, as a depth map would
-   see them; grazing and back-facing vertices make depth differences meaningless). The
+   vertices whose surface faces the viewer (the reference normal and every reference triangle
+   around the vertex · viewing direction < 0, as a depth map would see them; grazing and
+   back-facing vertices make depth differences meaningless, and at a vertex on a silhouette, where
+   some of its triangles turn away, a rounding-level shift moves the line onto another layer). The
    correspondence errors use the same (ICP-refined) transform as the other errors.
 
 :func:`summarise` averages the reports of a data set and divides by a baseline (the paper's
@@ -125,7 +127,7 @@ class EvaluationReport:
         num_points: reference face-region vertices scored.
         num_alignment_points: corresponding points of the rough alignment.
         num_depth_points: reference points of the depth statistics (the front-facing ones of the
-            face region by default); ``None``: ``num_points``.
+            face region by default: vertex normal and triangles around it); ``None``: ``num_points``.
     """
 
     rigid: AlignmentResult
@@ -377,6 +379,17 @@ def shares_vertex_order(faces: Tensor, reference_faces: Tensor, min_shared: floa
     return float(torch.isin(theirs, mine).float().mean()) >= min_shared
 
 
+def _front_facing_surface(vertices: Tensor, faces: Tensor, direction: Tensor) -> Tensor:
+    """``(N,)``: no triangle around the vertex turns away from a viewer looking along ``direction``
+    (outward normal, counter-clockwise winding, · direction ≥ 0; degenerate triangles ignored)."""
+    faces = faces.detach().cpu().long()
+    corners = vertices[faces]  # (F, 3, 3)
+    facing = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]) @ direction.to(vertices)
+    away = torch.zeros(vertices.shape[0], dtype=torch.bool)
+    away[faces[facing > 0].flatten()] = True
+    return ~away
+
+
 def _check_facing(normals: Tensor, direction: Tensor) -> None:
     """The reference face region must face the viewer (against ``direction``) for depth errors."""
     mean = normals.mean(0)
@@ -478,8 +491,11 @@ def evaluate_reconstruction(
             keeps all.
         view_direction: ``(3,)`` viewing direction of the depth errors, default ``(0, 0, 1)``.
         depth_front_facing: take the depth statistics over the face-region vertices whose
-            reference normal faces the viewer (``n · view_direction < 0``) only; ``False``: over
-            the whole face region.
+            reference normal and reference triangles (all those around the vertex) face the viewer
+            (``n · view_direction < 0``) only; ``False``: over the whole face region. At a vertex on
+            a silhouette (its normal faces the viewer, some of its triangles do not) the line along
+            the view misses the front-facing surface under a rounding-level shift and scores
+            another layer: a copy of the reference rounded to float32 scored up to 28 mm there.
 
     Returns:
         :class:`EvaluationReport`; the transforms' ``rotation`` and ``translation`` have the dtype
@@ -555,7 +571,8 @@ def evaluate_reconstruction(
     else:
         direction = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     _check_facing(point_normals, direction)
-    depth_points = points[point_normals @ direction < 0] if depth_front_facing else points
+    depth_points = points[_front_facing_surface(ref, reference_faces, direction)[region]
+                          & (point_normals @ direction < 0)] if depth_front_facing else points
     pred_faces_t = torch.from_numpy(pred_faces)
     surface = pred[torch.from_numpy(np.unique(pred_faces))]  # ICP pairs with the surface, not stray vertices
     pred_pairs, ref_pairs = pred[pairs[:, 0]], ref[pairs[:, 1]]
