@@ -97,8 +97,27 @@ def test_evaluate_command(tmp_path, capsys):
     incomplete = tmp_path / "incomplete.json"  # no chin: the error names the file it is missing from
     incomplete.write_text(json.dumps({k: v for k, v in model.landmarks.items() if k != "chin"}))
     assert main(["evaluate", str(pred), str(ref), "--model", "builtin", "--prediction-landmarks", str(incomplete)]) == 1
-    assert f"{pred} (landmarks {incomplete}) against {ref}: correspondences: source_landmarks: expected landmark " \
+    assert f"{pred} (landmarks {incomplete}) against {ref}: correspondences: prediction landmarks: expected landmark " \
            "'chin'" in capsys.readouterr().err
+
+
+def test_evaluate_names_the_model_file_that_lacks_an_alignment_landmark(tmp_path, capsys):
+    """Regression: the error named internal arguments ("correspondences: source_landmarks: ...")
+    instead of the --model file without the landmark."""
+    from facenormals.models import builtin_head_model
+    from facenormals.mesh import save_mesh
+
+    model = builtin_head_model()
+    few = tmp_path / "few.npz"
+    model.with_annotations({k: v for k, v in model.landmarks.items() if k != "right_eye_inner"},
+                           face_region=model.face_region).save(few)
+    ref, pred = tmp_path / "ref.ply", tmp_path / "pred.ply"
+    save_mesh(ref, model.mean, model.faces)
+    save_mesh(pred, model.mean * 1.05, model.faces)
+    assert main(["evaluate", str(pred), str(ref), "--model", str(few)]) == 1
+    err = capsys.readouterr().err
+    assert f"--model {few}: expected landmark 'right_eye_inner' (or its iBUG-68 equivalent)" in err
+    assert "source_landmarks" not in err and "Traceback" not in err
 
 
 def test_evaluate_json_keeps_the_model_file_and_makes_new_folders(tmp_path, capsys):

@@ -95,7 +95,7 @@ def _cmd_models(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from facenormals.eval import evaluate_reconstruction, shares_vertex_order
+    from facenormals.eval import evaluate_reconstruction, landmark_correspondences, shares_vertex_order
     from facenormals.mesh import load_mesh
     from facenormals.models import load_model
 
@@ -105,6 +105,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     pred_v, pred_f = load_mesh(args.prediction)
     ref_v, ref_f = load_mesh(args.reference)
     model = load_model(args.model)
+    # the reference's landmarks are the model's: a model without those of the rough alignment is named
+    landmark_correspondences(model.landmarks, model.landmarks, source_name=f"--model {args.model}",
+                             target_name=f"--model {args.model}")
     if ref_v.shape[0] != model.num_vertices or not shares_vertex_order(model.faces, ref_f):  # a crop of it passes
         what = (f"has {ref_v.shape[0]} vertices but model {model.name!r} has {model.num_vertices}"
                 if ref_v.shape[0] != model.num_vertices else

@@ -180,13 +180,13 @@ def test_report_dict_and_table(head):
         ({"correspondences": [[0, 1], [2, 3]]}, r"correspondences: expected at least 3 pairs"),
         ({"correspondences": [[0, 1], [2, 3], [4, 10**6]]}, r"correspondences: expected reference indices"),
         ({"correspondences": [[0.5, 1], [2, 3], [4, 5]]}, r"correspondences: expected integer index pairs"),
-        ({"correspondences": {"chin": 0}}, r"correspondences: source_landmarks: expected landmark 'right_eye_outer'"),
+        ({"correspondences": {"chin": 0}}, r"correspondences: prediction landmarks: expected landmark 'right_eye_outer'"),
         ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "chin": -1}},
-         r"correspondences: source_landmarks\['chin'\]: expected an integer >= 0, got -1"),
+         r"correspondences: prediction landmarks\['chin'\]: expected an integer >= 0, got -1"),
         ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "chin": 10.9}},
-         r"correspondences: source_landmarks\['chin'\]: expected an integer, got float 10.9"),
+         r"correspondences: prediction landmarks\['chin'\]: expected an integer, got float 10.9"),
         ({"correspondences": {**{n: i for i, n in enumerate(DEFAULT_ALIGNMENT_LANDMARKS)}, "nose_tip": True}},
-         r"correspondences: source_landmarks\['nose_tip'\]: expected an integer"),
+         r"correspondences: prediction landmarks\['nose_tip'\]: expected an integer"),
         ({"icp_max_iterations": -1}, r"icp_max_iterations: expected an integer >= 0, got -1"),
         ({"icp_tolerance": float("nan")}, r"icp_tolerance: expected a finite number"),
         ({"icp_max_distance": 0.0}, r"icp_max_distance: expected a finite number > 0"),
@@ -529,3 +529,25 @@ def test_a_copy_rounded_to_float32_scores_zero_depth_error(ict_npz):
     depth = report.similarity.depth
     assert depth.coverage == 1.0 and depth.mean < 1e-4 and depth.delta90 < 1e-4
     assert report.similarity.point_to_plane_rmse < 1e-4
+
+
+def test_alignment_warnings_tell_a_size_difference_from_wrong_correspondences(head):
+    """Regression: a prediction 1.5x the reference was warned about as "the correspondences are likely
+    wrong (left and right swapped ...)", though the similarity fit matched its points exactly."""
+    from facenormals.models import LANDMARK_PAIRS
+
+    model, shape = head
+    larger = evaluate_reconstruction(shape * 1.5, model.faces, shape, model.faces, model.face_region,
+                                     (model.landmarks, model.landmarks))
+    rigid = [w for w in larger.warnings if w.startswith("rigid alignment: its")]
+    assert len(rigid) == 1 and "the meshes differ in size" in rigid[0] and "likely wrong" not in rigid[0]
+    assert larger.rigid.alignment_rms > 20.0 > larger.similarity.alignment_rms
+    assert not any(w.startswith("similarity alignment: its") for w in larger.warnings)
+    swapped = dict(model.landmarks)
+    for a, b in LANDMARK_PAIRS:
+        swapped[a], swapped[b] = model.landmarks[b], model.landmarks[a]
+    names = ("left_eye_outer", "right_eye_outer", "left_mouth_corner", "right_mouth_corner", "nose_tip", "chin")
+    mirrored = evaluate_reconstruction(shape, model.faces, shape, model.faces, model.face_region, (swapped, model.landmarks),
+                                       same_topology=False, landmark_names=names)
+    wrong = [w for w in mirrored.warnings if "stay" in w]
+    assert len(wrong) == 2 and all("the correspondences are likely wrong" in w for w in wrong), mirrored.warnings

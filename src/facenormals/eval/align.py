@@ -179,11 +179,19 @@ def landmark_correspondences(
     source_landmarks: Mapping[str, int],
     target_landmarks: Mapping[str, int],
     names: Sequence[str] = DEFAULT_ALIGNMENT_LANDMARKS,
+    *,
+    source_name: str = "source_landmarks",
+    target_name: str = "target_landmarks",
 ) -> Tensor:
     """Index pairs ``(K, 2)`` = ``(source vertex, target vertex)`` of the named landmarks.
 
     A name missing from a mapping is also looked up under its iBUG-68 name (``ibug_36`` for
     ``right_eye_outer``, ...), which is how the ICT-FaceKit loader names its landmarks.
+
+    Args:
+        source_landmarks, target_landmarks: landmark name → vertex index of each mesh.
+        names: the landmarks to pair.
+        source_name, target_name: what errors call the two mappings (e.g. the file they came from).
 
     Raises:
         ValueError: naming the mapping that lacks a landmark.
@@ -196,7 +204,7 @@ def landmark_correspondences(
                 [108, 108]])
     """
     rows = [
-        (_lookup(source_landmarks, n, "source_landmarks"), _lookup(target_landmarks, n, "target_landmarks"))
+        (_lookup(source_landmarks, n, source_name), _lookup(target_landmarks, n, target_name))
         for n in names
     ]
     return torch.tensor(rows, dtype=torch.long).reshape(-1, 2)

@@ -190,7 +190,13 @@ class EvaluationReport:
         out = []
         for name in ALIGNMENTS:
             result = getattr(self, name)
-            if result.alignment_rms > ALIGNMENT_RMS_WARNING:
+            if result.alignment_rms > ALIGNMENT_RMS_WARNING and self.similarity.alignment_rms <= ALIGNMENT_RMS_WARNING:
+                out.append(f"{name} alignment: its {self.num_alignment_points} corresponding points stay "
+                           f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit, but "
+                           f"{self.similarity.alignment_rms:.1f} mm with a scale ({self.similarity.scale:.3g}): the "
+                           "meshes differ in size, which one photo cannot fix; the similarity column scores "
+                           "the shape")
+            elif result.alignment_rms > ALIGNMENT_RMS_WARNING:
                 out.append(f"{name} alignment: its {self.num_alignment_points} corresponding points stay "
                            f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit; above "
                            f"{ALIGNMENT_RMS_WARNING:g} mm the correspondences are likely wrong (left and right "
@@ -228,10 +234,8 @@ def _landmarks_of(x: object) -> Mapping[str, int] | None:
 
 
 def _named_pairs(prediction: Mapping[str, int], reference: Mapping[str, int], names: Sequence[str]) -> Tensor:
-    try:
-        return landmark_correspondences(prediction, reference, names)
-    except ValueError as error:  # name the argument the caller passed
-        raise ValueError(f"correspondences: {error}") from None
+    return landmark_correspondences(prediction, reference, names, source_name="correspondences: prediction landmarks",
+                                    target_name="correspondences: reference landmarks")
 
 
 def _describe(x: object) -> str:
