@@ -72,7 +72,8 @@ def _cmd_models(args: argparse.Namespace) -> int:
                          f"{model.num_expressions} expressions, {len(model.landmark_names)} landmarks; "
                          f"{model.metadata.get('source', '')}")
             print(line)
-        print(f"cache: {cache_dir()}  (any facenormals .npz model also loads with --model PATH)")
+        print(f"cache: {cache_dir()}  (a model file also loads with --model PATH: facenormals .npz, LYHM or BFM "
+              "2009 .mat, BFM 2017/2019 .h5, FLAME .pkl)")
         return 0
     if args.action == "show":
         model = load_model(args.name)
@@ -326,7 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
                "command line prints its usage and exits 2; Ctrl-C exits 130.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="recover a random synthetic head from its normal map and landmarks")
-    demo.add_argument("--model", default="auto", help="ict, builtin, auto (default) or a model .npz path")
+    demo.add_argument("--model", default="auto", help="ict, builtin, auto (default) or a model file (.npz, .mat, .h5, "
+                      ".pkl)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--out", default="out/demo", help="output folder for demo_fit.ply and demo_overlay.png")
     demo.set_defaults(func=_cmd_demo)
@@ -335,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     actions = models.add_subparsers(dest="action", required=True)
     actions.add_parser("list", help="the models available here")
     show = actions.add_parser("show", help="vertices, components, landmarks and source of a model")
-    show.add_argument("name", help="ict, builtin or a model .npz path")
+    show.add_argument("name", help="ict, builtin or a model file (.npz, .mat, .h5, .pkl)")
     fetch = actions.add_parser("fetch", help="download and convert a model into the cache")
     fetch.add_argument("name", choices=["ict"])
     fetch.add_argument("--from", dest="source", default=None, help="convert a local copy (folder or zip) instead")

@@ -322,6 +322,27 @@ def test_bfm2017_shape_only(tmp_path):
 
 
 @needs_h5py
+def test_a_plain_statismo_model_is_named_as_such_not_as_a_damaged_bfm_file(tmp_path):
+    """Regression: scalismo's layout (model/ and representer/ at the top) was warned about as "unknown
+    top-level groups ... is the file damaged?" and refused as "missing datasets"."""
+    import warnings
+
+    path = tmp_path / "femur.h5"
+    with h5py.File(path, "w") as handle:
+        handle["model/mean"] = GL_VERTICES_MM.reshape(-1).astype(np.float32)
+        handle["model/pcaBasis"] = BASIS.astype(np.float32)
+        handle["model/pcaVariance"] = (STD_MM**2).astype(np.float32)
+        handle["representer/cells"] = CCW_FACES.T.astype(np.uint32)
+        handle.create_group("modelinfo")
+        handle["version/majorVersion"] = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ModelFileError, match=re.escape(f"{path}: a plain statismo shape model (top-level 'model' "
+                                                           "and 'representer', as scalismo writes), not a BFM file")):
+            load_bfm2017(path)
+
+
+@needs_h5py
 def test_bfm2017_expressions(tmp_path):
     path = write_bfm2017(tmp_path / "model2017-1_bfm_nomouth.h5")
     model = load_bfm2017(path)

@@ -506,6 +506,11 @@ def _check_statismo_groups(path: Path, handle: Any, h5py: Any) -> None:
     printable text, and a model group of unknown name where ``expression`` is missing, are refused.
     """
     names = list(handle.keys())
+    if "shape" not in names and "model" in names and "representer" in names:
+        raise ModelFileError(f"{path}: a plain statismo shape model (top-level 'model' and 'representer', as scalismo "
+                             "writes), not a BFM file (its model under 'shape'): its frame and units are unknown here; "
+                             "build a MorphableModel in the model frame of docs/conventions.md (millimetres, face "
+                             "along -z) and save it as a facenormals .npz")
     for name in names:  # h5py gives bytes for a name that is not UTF-8
         if not isinstance(name, str) or not name.isprintable():
             raise ModelFileError(f"{path}: damaged BFM .h5 file: the top-level group name {name!r} is not printable "

@@ -1,4 +1,5 @@
-"""Find and load a model by name: ``"ict"``, ``"builtin"`` or a path to a facenormals ``.npz``."""
+"""Find and load a model by name: ``"ict"``, ``"builtin"`` or a path to a model file (a facenormals
+``.npz``, LYHM or BFM 2009 ``.mat``, BFM 2017/2019 ``.h5``, FLAME ``.pkl``)."""
 
 from __future__ import annotations
 
