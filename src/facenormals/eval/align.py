@@ -189,9 +189,11 @@ def landmark_correspondences(
     ``right_eye_outer``, ...), which is how the ICT-FaceKit loader names its landmarks.
 
     Args:
-        source_landmarks, target_landmarks: landmark name → vertex index of each mesh.
+        source_landmarks: landmark name → vertex index of the source mesh.
+        target_landmarks: the same for the target mesh.
         names: the landmarks to pair.
-        source_name, target_name: what errors call the two mappings (e.g. the file they came from).
+        source_name: what errors call ``source_landmarks`` (e.g. the file it came from).
+        target_name: what errors call ``target_landmarks``.
 
     Raises:
         ValueError: naming the mapping that lacks a landmark.
