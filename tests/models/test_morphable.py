@@ -516,3 +516,19 @@ def test_an_edited_cached_result_is_rebuilt():
     normals[0].zero_()  # through a view too
     assert torch.equal(model.basis_matrix(), expected_J) and torch.equal(model.mean_normals(), expected_normals)
     assert model.basis_matrix() is model.basis_matrix()
+
+
+def test_landmark_faces_give_the_exact_normals_at_the_landmarks_of_any_shape():
+    from facenormals.mesh import vertex_normals
+    from facenormals.models import builtin_head_model
+
+    model = builtin_head_model(dtype=torch.float64)
+    shapes = model(model.sample_shape_coeffs(3, generator=torch.Generator().manual_seed(4)))
+    faces = model.landmark_faces()
+    index = model.landmark_indices
+    assert faces.shape[0] < model.faces.shape[0] // 50
+    assert all(bool((faces == i).any()) for i in index.tolist())
+    torch.testing.assert_close(vertex_normals(shapes, faces)[:, index], vertex_normals(shapes, model.faces)[:, index])
+    assert model.landmark_faces() is faces  # cached
+    model.landmark_indices = index.flip(0).clone()  # a new buffer rebuilds it
+    assert model.landmark_faces() is not faces

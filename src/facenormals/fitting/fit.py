@@ -270,7 +270,7 @@ def _landmark_facing(vertices: Tensor, model: MorphableModel, rotation: Tensor, 
     if not index.numel():
         return rotation.new_full((B, V), float("nan"))
     points = vertices[:, index]  # (B, L, 3)
-    normals = vertex_normals(vertices, model.faces)[:, index]
+    normals = vertex_normals(vertices, model.landmark_faces())[:, index]  # exact there, ~1/100 of the mesh
     cosine = facing_cosine(points[:, None].expand(B, V, -1, 3).reshape(B * V, -1, 3),
                            normals[:, None].expand(B, V, -1, 3).reshape(B * V, -1, 3),
                            rotation.reshape(B * V, 3, 3), translation.reshape(B * V, 3), mask)

@@ -350,6 +350,24 @@ class MorphableModel(nn.Module):
         return self._derived("landmark_normals", (self.mean, self.faces, self.landmark_indices),
                              lambda: self.mean_normals()[self.landmark_indices])
 
+    def landmark_faces(self) -> Tensor:
+        """``(F_L, 3)`` the triangles around the landmark vertices: ``vertex_normals(vertices,
+        model.landmark_faces())`` is exact at the landmarks of any shape (and 0 where no such triangle
+        reaches) at a fraction of the whole mesh's cost; computed once and reused until a buffer
+        changes, a shared cached tensor to treat as read-only.
+
+        Example:
+            >>> from facenormals.mesh import vertex_normals
+            >>> from facenormals.models import builtin_head_model
+            >>> model = builtin_head_model()
+            >>> index = model.landmark_indices
+            >>> exact = vertex_normals(model.mean[None], model.faces)[0, index]
+            >>> bool(torch.allclose(vertex_normals(model.mean[None], model.landmark_faces())[0, index], exact))
+            True
+        """
+        return self._derived("landmark_faces", (self.faces, self.landmark_indices),
+                             lambda: self.faces[torch.isin(self.faces, self.landmark_indices).any(1)])
+
     def _derived(self, slot: object, sources: Sequence[Tensor], build: Callable[[], Tensor]) -> Tensor:
         """``build()``, kept under ``slot`` until one of its ``sources`` changes: is replaced (``.to()``,
         assignment) or edited in place (its ``_version``), or the result itself is edited in place by a
