@@ -361,6 +361,20 @@ def test_outputs_that_are_empty_inputs_or_unwritable_are_refused_before_any_work
     assert not (tmp_path / "new").exists()  # the probe's folders are removed again
 
 
+def test_the_output_check_leaves_its_folders_for_the_other_ranks_of_a_launch(tmp_path, monkeypatch):
+    """Regression: under torchrun every rank checks --out at once; a rank removing the folder its probe
+    had made pulled it from under another rank's probe ("--out: ... cannot be written (No such file or
+    directory)", 2 in 300 trials) or its first shard."""
+    from facenormals.cli import _check_writable
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    _check_writable(tmp_path / "run" / "a", "--out", folder=True)
+    assert (tmp_path / "run" / "a").is_dir() and not any((tmp_path / "run" / "a").iterdir())
+    monkeypatch.setenv("WORLD_SIZE", "1")
+    _check_writable(tmp_path / "solo" / "a", "--out", folder=True)
+    assert not (tmp_path / "solo").exists()
+
+
 def test_demo_checks_its_seed_and_writes_both_files_or_neither(tmp_path, capsys):
     for seed, message in (("-1", "seed: expected an integer >= 0"), (str(2**64), "seed: expected an integer below 2**63")):
         assert main(["demo", "--model", "builtin", "--seed", seed, "--out", str(tmp_path / "d")]) == 1

@@ -244,7 +244,10 @@ def _check_writable(path: str | Path, option: str, folder: bool = False, inputs:
     """Refuse, before any work, an output ``path`` that cannot be written or would destroy something: an
     empty name (an unset variable: the output would land in the current folder), a folder (a file when
     ``folder``), a path under a file, one of the command's ``inputs``, or a folder where no file can be
-    created (tried by creating one, and the missing folders leading to it, then removing them again)."""
+    created (tried by creating one, and the missing folders leading to it, then removing them again;
+    under a launcher, ``WORLD_SIZE`` > 1, the folders stay: the ranks run this check at once, and a
+    rank removing the folder it made pulled it from under another's probe, or its first shard)."""
+    from facenormals.core.check import environment_integer
     from facenormals.core.files import temporary_beside
 
     if str(path) == "":
@@ -262,6 +265,8 @@ def _check_writable(path: str | Path, option: str, folder: bool = False, inputs:
             raise ValueError(f"{option}: {path} is also an input of this command; writing it would destroy the input")
     where = path if folder else path.parent
     missing = [p for p in (where, *where.parents) if not p.exists()]
+    if environment_integer("WORLD_SIZE", 1) > 1:
+        missing = []  # left for the other ranks, which may be using them already
     try:
         where.mkdir(parents=True, exist_ok=True)
         temporary_beside(where / "probe").unlink()
