@@ -265,7 +265,8 @@ def _check_writable(path: str | Path, option: str, folder: bool = False, inputs:
             raise ValueError(f"{option}: {path} is also an input of this command; writing it would destroy the input")
     where = path if folder else path.parent
     missing = [p for p in (where, *where.parents) if not p.exists()]
-    if environment_integer("WORLD_SIZE", 1) > 1:
+    world, rank = environment_integer("WORLD_SIZE", 1), environment_integer("RANK", 0)
+    if world > 1 and 0 <= rank < world:  # (a launch of no rank 0 is refused later, leaving nothing)
         missing = []  # left for the other ranks, which may be using them already
     try:
         where.mkdir(parents=True, exist_ok=True)
