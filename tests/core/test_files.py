@@ -127,3 +127,38 @@ def test_a_published_file_is_flushed_before_it_loses_its_write_permission(tmp_pa
     part = temporary_beside(tmp_path / "r.json")
     publish(part, tmp_path / "r.json")
     assert order.index("open") < order.index("chmod")
+
+
+_HOLDER = """
+import sys, time
+from facenormals.core.files import hold_locks
+with hold_locks(sys.argv[1], [int(s) for s in sys.argv[2:]], "held"):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="advisory locks are POSIX")
+def test_locks_held_by_another_process_are_refused_until_it_dies(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    from facenormals.core.files import FolderInUseError, hold_locks
+
+    lock = tmp_path / ".synth.lock"
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(lock), "1", "3"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with hold_locks(lock, [0, 2, 4], "other slots"):  # other bytes of the same file: no conflict
+            pass
+        for slots in ([3], [0, 1]):
+            with pytest.raises(FolderInUseError, match=rf"shards: another process is writing it \(it holds the lock "
+                                                       rf"{lock}\)"):
+                with hold_locks(lock, slots, "shards"):
+                    pytest.fail("entered a held lock")
+    finally:
+        holder.send_signal(signal.SIGKILL)  # as a killed run: the system releases its locks
+        holder.wait()
+    with hold_locks(lock, [1, 3], "shards"):
+        pass

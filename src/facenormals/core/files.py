@@ -7,13 +7,20 @@ one, never a part of it; two writers of one target never share a temporary file.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
-__all__ = ["StagedFiles", "atomic_write", "publish", "publish_together", "temporary_beside"]
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks, see hold_locks
+    fcntl = None
+
+__all__ = ["FolderInUseError", "StagedFiles", "atomic_write", "hold_locks", "publish", "publish_together",
+           "temporary_beside"]
 
 #: Suffix of the temporary files (before the target's own suffix, which some writers need).
 PART = ".part"
@@ -242,3 +249,46 @@ def atomic_write(path: str | Path, durable: bool = True) -> Iterator[Path]:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+class FolderInUseError(ValueError):
+    """Another process holds a lock of :func:`hold_locks` (it is writing the same files)."""
+
+
+@contextmanager
+def hold_locks(path: str | Path, slots: Sequence[int], what: str) -> Iterator[None]:
+    """Hold exclusive advisory locks on ``slots`` (byte ``k`` of the file ``path`` for slot ``k``) for
+    the duration of the block, or raise :class:`FolderInUseError` naming ``what`` where another
+    process holds one: two writers of the same files (a run started twice, a second ``synth`` into
+    a folder) would otherwise delete each other's temporaries or interleave their logs.
+
+    The locks are POSIX record locks: the system releases them when the process ends, however it
+    ends, so a killed run leaves none behind (the small lock file stays). Processes on other
+    machines see them where the file system supports them (NFS with its lock daemon). Without
+    ``fcntl`` (Windows) nothing is locked. Record locks belong to the process: a second
+    ``hold_locks`` on the same file in the same process does not conflict, and its end releases the
+    first's locks too; each writer here takes one file for the whole of its work.
+
+    Example:
+        >>> import tempfile
+        >>> lock = Path(tempfile.mkdtemp()) / ".synth.lock"
+        >>> with hold_locks(lock, [0, 3], "shards 0 and 3"):
+        ...     pass
+    """
+    slots = list(slots)
+    if fcntl is None or not slots:
+        yield
+        return
+    handle = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        for slot in slots:
+            try:
+                fcntl.lockf(handle, fcntl.LOCK_EX | fcntl.LOCK_NB, 1, slot)
+            except OSError as error:  # EACCES or EAGAIN: held by another process
+                if error.errno not in (errno.EACCES, errno.EAGAIN):
+                    raise
+                raise FolderInUseError(f"{what}: another process is writing it (it holds the lock {path}); wait "
+                                       "for that run to end, or choose another folder") from None
+        yield
+    finally:
+        os.close(handle)  # releases every lock this process holds on the file
