@@ -41,7 +41,7 @@ PUBLIC = {
                          "depth_errors", "depth_statistics", "evaluate_reconstruction", "fit_similarity",
                          "icp_point_to_plane", "landmark_correspondences", "point_to_plane_errors", "shares_vertex_order",
                          "summarise"],
-    "facenormals.fitting": ["FACING_AWAY_COSINE", "FacingAwayWarning", "FitResult", "FitWeights", "HeadFitProblem", "PoseEstimate",
+    "facenormals.fitting": ["FACING_AWAY_COSINE", "FacingAwayWarning", "FitResult", "FitWeights", "HeadFitProblem", "NormalAxisError", "PoseEstimate",
                             "drop_hidden_landmarks", "facing_cosine", "fit_head", "grid_subset", "hidden_landmarks",
                             "landmark_pose_jacobian", "prealign_pose"],
     # used by examples/ (paper_pipeline.py, demo_synthetic_fit.py) and the `demo` command

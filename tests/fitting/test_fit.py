@@ -406,9 +406,14 @@ def test_a_map_with_a_flipped_axis_is_refused_naming_the_view(model, head, axis,
     flip[axis] = -1.0
     maps = obs.normal_maps.clone()
     maps[0, 1] = maps[0, 1] * flip
-    with pytest.raises(ValueError, match=f"normal_maps: view 1's {name} components point against those of the head "
-                                         f"pre-aligned to its landmarks .* is the map's {name} axis flipped"):
+    from facenormals.fitting import NormalAxisError
+
+    with pytest.raises(NormalAxisError, match=f"normal_maps: view 1's {name} components point against those of the "
+                                              f"head pre-aligned to its landmarks .* is the map's {name} axis flipped") as caught:
         fit_head(maps, obs.landmarks, model, intrinsics=obs.intrinsics)
+    error = caught.value  # what callers such as reconstruct_views report in their own terms
+    assert isinstance(error, ValueError) and (error.subject, error.view, error.axis) == (0, 1, name)
+    assert error.cosine < -0.3 and error.pixels >= 50 and f"cosine {error.cosine:.2f} over {error.pixels} pixels" in str(error)
 
 
 def test_flags_must_be_booleans(model, head):

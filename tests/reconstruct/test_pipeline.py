@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 
@@ -783,3 +784,57 @@ def test_weight_metadata_is_checked_before_the_photos_and_names_the_file(monkeyp
                 "metadata": {}}, ten)
     with pytest.raises(ValueError, match=r"ten_landmarks.pt: the built-in mirror averaging needs the library's 24"):
         photos.reconstruct_photos(["a.jpg"], None, model="builtin", weights=ten, log=lambda message: None)
+
+
+def _flipped_front(oracle):
+    """An oracle network whose frontal view's normal map has its y components negated (y up), as an
+    under-trained network's map can be, with the landmarks of that view; the view's focal length and map."""
+    model, views, order = oracle
+    normals = views.normal_maps[0][1:2].clone()
+    normals[:, 1] *= -1
+    return OracleNet(normals, views.landmarks[0][1:2, order]), float(views.intrinsics[0, 1, 0]), normals
+
+
+def test_a_network_map_against_its_own_landmarks_names_the_photo_not_normal_maps(oracle):
+    """Regression: fit_head's "normal_maps: view 0's y components point against those of the head
+    pre-aligned to its landmarks ... is the map's y axis flipped (y up; ...)" reached the user of
+    `facenormals reconstruct` with under-trained weights, who never passed normal maps."""
+    from facenormals.reconstruct import NoFaceError
+
+    model = oracle[0]
+    net, focal, normals = _flipped_front(oracle)
+    for names, name in ((["front.jpg"], "front.jpg"), (None, "view 0")):
+        with pytest.raises(NoFaceError) as caught:
+            reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, mirror=False, view_names=names)
+        message = str(caught.value)
+        assert re.match(rf"{name}: the network's normal map disagrees with the head posed by its \d+ landmarks \(its y "
+                        r"components point against the head's: cosine -0\.\d\d over \d+ pixels\): are the network's "
+                        r"weights trained enough \(if --weights was given\), and is there a face in its crop\?",
+                        message), message
+        assert "normal_maps" not in message and "y up" not in message
+    # maps given directly to fit_head keep its own message, about the caller's maps
+    from facenormals.fitting import fit_head
+
+    with pytest.raises(ValueError, match=r"normal_maps: view 0's y components point against"):
+        fit_head(normals, oracle[1].landmarks[0][1:2], model, intrinsics=oracle[1].intrinsics[0, 1:2])
+
+
+def test_the_command_line_reports_a_network_map_against_its_landmarks_without_a_traceback(oracle, tmp_path,
+                                                                                             monkeypatch, capsys):
+    from facenormals import cli
+
+    model = oracle[0]
+    net, focal, _ = _flipped_front(oracle)
+
+    def reconstruct_photos(paths, out_dir, **kwargs):  # the photo's crop, through the library's own pipeline
+        reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=focal, mirror=False,
+                          view_names=[str(p) for p in paths])
+
+    monkeypatch.setattr("facenormals.reconstruct.reconstruct_photos", reconstruct_photos)
+    monkeypatch.delenv("FACENORMALS_TRACEBACK", raising=False)
+    photo = tmp_path / "front.jpg"
+    assert cli.main(["reconstruct", str(photo), "-o", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"facenormals reconstruct: error: {photo}: the network's normal map disagrees with the head "
+                          "posed by its "), err
+    assert "Traceback" not in err and "normal_maps" not in err

@@ -249,11 +249,22 @@ def _check_normal_axes(normal_maps: Tensor, foreground: Tensor, model: Morphable
     b, v = divmod(view, V)
     where = f"view {v}{f' of subject {b}' if normal_maps.shape[0] > 1 else ''}"
     name = "xy"[axis]
-    raise ValueError(
+    raise NormalAxisError(
         f"normal_maps: {where}'s {name} components point against those of the head pre-aligned to its landmarks "
         f"(cosine {float(cosine[view, axis]):.2f} over {int(count[view])} pixels): is the map's {name} axis flipped "
         f"({'a mirrored map' if name == 'x' else 'y up'}; facenormals expects OpenCV's camera frame, x right and y "
-        "down, docs/conventions.md), or do the landmarks not belong to this map?")
+        "down, docs/conventions.md), or do the landmarks not belong to this map?",
+        subject=b, view=v, axis=name, cosine=float(cosine[view, axis]), pixels=int(count[view]))
+
+
+class NormalAxisError(ValueError):
+    """:func:`fit_head`'s refusal of a view whose normal map's ``axis`` (``"x"`` or ``"y"``) components
+    point against those of the head pre-aligned to the view's landmarks (``cosine`` over ``pixels``):
+    a mirrored or y-up map, or a map and landmarks that disagree (e.g. a network's, under-trained)."""
+
+    def __init__(self, message: str, *, subject: int, view: int, axis: str, cosine: float, pixels: int) -> None:
+        super().__init__(message)
+        self.subject, self.view, self.axis, self.cosine, self.pixels = subject, view, axis, cosine, pixels
 
 
 class FacingAwayWarning(RuntimeWarning):

@@ -28,8 +28,8 @@ from torch import Tensor
 from facenormals.core.check import check_floating, check_nonnegative, check_shape, check_unit_range
 from facenormals.core.files import StagedFiles
 from facenormals.data.landmark_maps import landmarks_from_maps
-from facenormals.fitting import (FACING_AWAY_COSINE, FacingAwayWarning, FitResult, FitWeights, PoseEstimate,
-                                 drop_hidden_landmarks, fit_head)
+from facenormals.fitting import (FACING_AWAY_COSINE, FacingAwayWarning, FitResult, FitWeights, NormalAxisError,
+                                 PoseEstimate, drop_hidden_landmarks, fit_head)
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL
 from facenormals.fitting.pose import require_pose_landmarks
 from facenormals.geometry import euler_to_rotation_matrix, project_points
@@ -313,7 +313,8 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
         NoFaceError: naming the view when the network finds fewer than 4 of the model's landmarks in
             it (too few to pre-align: no face, or a crop that misses it), or when the fit puts the
             landmarks found on a head turned away from the camera (spurious peaks in a crop without
-            a face).
+            a face), or when the network's normal map of the view points against the head posed by
+            its landmarks (under-trained weights, or no face in the crop).
         ValueError: when ``fit_options`` holds ``intrinsics``.
     """
     if "intrinsics" in fit_options:  # fit_head would get them twice, a TypeError deep inside
@@ -358,7 +359,10 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
     start = time.perf_counter()
     with warnings.catch_warnings():  # a head facing away is refused below, naming the photo
         warnings.simplefilter("ignore", FacingAwayWarning)
-        fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics, **fit_options)
+        try:
+            fit = fit_head(inputs.normal_maps, inputs.landmarks, model, intrinsics=inputs.intrinsics, **fit_options)
+        except NormalAxisError as error:
+            raise _map_disagreement(error, names, used) from None
     if inputs.prealignment is not None:  # fit_head skipped its pre-alignment: report this one (over all detections)
         fit.prealignment_rms_px = inputs.prealignment.rms_px.reshape(1, V).to(fit.prealignment_rms_px)
     log(f"fit: {fit.summary()} in {(time.perf_counter() - start) * 1e3:.0f} ms")
@@ -374,6 +378,18 @@ def reconstruct_views(crops: Tensor, net: NormalLandmarkUNet, model: MorphableMo
                 f"median landmark error {median:.1f} px, {used[v]} landmarks fitted, {dropped[v]} dropped as "
                 f"hidden): check view{v}_overlay.png and view{v}_landmarks.png")
     return maps, fit
+
+
+def _map_disagreement(error: NormalAxisError, names: list[str], used: list[int]) -> NoFaceError:
+    """The :class:`NoFaceError` naming the view of ``error``, fit_head's refusal of a normal map whose x
+    or y axis points against the head pre-aligned to the view's landmarks. The caller gave no normal
+    maps: the network's map disagrees with its own landmarks (under-trained weights, or spurious
+    detections in a crop without a face), not a flipped axis."""
+    return NoFaceError(f"{names[error.view]}: the network's normal map disagrees with the head posed by its "
+                       f"{used[error.view]} landmarks (its {error.axis} components point against the head's: cosine "
+                       f"{error.cosine:.2f} over {error.pixels} pixels): are the network's weights trained enough (if "
+                       "--weights was given), and is there a face in its crop? (a profile view may need its face "
+                       "box, --box X,Y,W,H)")
 
 
 def _require_facing_heads(fit: FitResult, names: list[str], used: list[int]) -> None:
