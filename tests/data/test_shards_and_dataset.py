@@ -42,7 +42,7 @@ def dataset_root(tmp_path_factory):
 
 def test_layout_and_manifest(dataset_root):
     names = sorted(os.listdir(dataset_root))
-    assert names == ["manifest.json", "shard_00000.npz", "shard_00001.npz", "shard_00002.npz"]
+    assert names == [".synth.lock", "manifest.json", "shard_00000.npz", "shard_00001.npz", "shard_00002.npz"]
     manifest = read_manifest(dataset_root)
     assert manifest["count"] == 10 and manifest["seed"] == 1 and manifest["model"]["name"] == "builtin"
     assert SynthConfig.from_dict(manifest["config"]) == CONFIG
@@ -113,7 +113,7 @@ def test_resume_skips_finished_shards(dataset_root, tmp_path):
 def test_extend_and_ranks(dataset_root, tmp_path):
     root = tmp_path / "ranked"
     first = _write(root, count=10, rank=1, world_size=2)
-    assert sorted(os.listdir(root)) == ["manifest.json", "shard_00001.npz"]
+    assert sorted(os.listdir(root)) == [".synth.lock", "manifest.json", "shard_00001.npz"]
     assert first.shards_written == 1
     with pytest.raises(FileNotFoundError, match="1 of 3 shards are missing|2 of 3 shards are missing"):
         SyntheticHeadDataset(root)
@@ -210,7 +210,7 @@ def test_worker_start_errors_reach_the_caller(tmp_path, monkeypatch):
     from facenormals.data import shards
     from facenormals.models import ModelFileError
 
-    shards._init_worker(str(tmp_path / "missing.npz"), CONFIG, 0, None)  # the error waits for the first task
+    shards._init_worker(os.getppid(), str(tmp_path / "missing.npz"), CONFIG, 0, None)  # the error waits for the task
     with pytest.raises(ModelFileError, match="missing.npz"):
         shards._work((0, 1))
     shards._WORKER.clear()
@@ -598,3 +598,139 @@ def test_a_manifest_whose_model_is_not_an_object_is_named(dataset_root, tmp_path
     root = _copy_with_manifest(dataset_root, tmp_path, model="builtin")
     with pytest.raises(ValueError, match="manifest.json: model: expected a JSON object, got str"):
         SyntheticHeadDataset(root)
+
+
+@pytest.mark.parametrize("augment", [3, "flip", [PhotoAugmentation()]])
+def test_an_augment_that_is_not_callable_is_refused_by_the_constructor(tmp_path, dataset_root, augment):
+    """Regression: augment=3 was accepted and every item then failed with 'int' object is not callable."""
+    for root in (dataset_root, tmp_path):  # a valid dataset, and before the folder is read
+        with pytest.raises(ValueError, match=r"^augment: expected None or a callable .*, got "):
+            SyntheticHeadDataset(root, augment=augment)
+
+
+@pytest.mark.parametrize("root", ["", 3, None])
+def test_a_root_that_is_no_folder_name_is_refused(root):
+    with pytest.raises(ValueError, match=r"^root: expected a dataset folder name \(str or os.PathLike\), got "):
+        SyntheticHeadDataset(root)
+
+
+def test_an_index_must_be_an_integer_and_an_out_of_range_one_stays_an_index_error(dataset_root):
+    """Regression: dataset[1.5] and dataset['3'] were raw TypeErrors (from the range comparison)."""
+    dataset = SyntheticHeadDataset(dataset_root, with_landmark_maps=False)
+    for index in (1.5, "3", None, True, np.bool_(False), torch.tensor(1.0), torch.tensor([1]), np.float64(2.0)):
+        with pytest.raises(ValueError, match=r"^index: expected an integer, got "):
+            dataset[index]
+    for index in (3, np.int64(3), np.int32(3), torch.tensor(3), -7):  # what samplers pass; -7 is 3 from the end
+        assert int(dataset[index]["index"]) == 3
+    assert int(dataset[-1]["index"]) == 9 and int(dataset[np.int64(-10)]["index"]) == 0
+    for index in (10, -11, np.int64(10), torch.tensor(-11)):
+        with pytest.raises(IndexError, match="out of range for 10 samples"):
+            dataset[index]
+    assert [int(item["index"]) for item in dataset] == list(range(10))  # the old iteration protocol ends on IndexError
+
+
+_LOCK_HOLDER = """
+import sys, time
+from facenormals.core.files import hold_locks
+with hold_locks(sys.argv[1], [int(sys.argv[2])], "held"):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="advisory locks are POSIX")
+def test_a_second_synth_into_a_folder_being_written_is_refused(dataset_root, tmp_path):
+    """Regression: a second `synth` into the same folder deleted the first one's half-written shard (as
+    a killed run's leftover); the first then failed with "No such file or directory". While another
+    process holds a shard's lock, write_dataset refuses before touching anything; the ranks of one
+    launch lock disjoint shards."""
+    import shutil
+    import signal
+    import subprocess
+    import sys
+
+    from facenormals.core.files import FolderInUseError
+
+    root = tmp_path / "busy"
+    shutil.copytree(dataset_root, root)
+    os.remove(root / "shard_00002.npz")
+    live = root / ".shard_00002.npz.a1b2.part.npz"
+    live.write_bytes(b"being written by the first synth")
+    holder = subprocess.Popen([sys.executable, "-c", _LOCK_HOLDER, str(root / ".synth.lock"), "2"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderInUseError, match=f"out_dir {root}: another process is writing it"):
+            _write(root)
+        assert live.read_bytes() == b"being written by the first synth"
+        other_rank = _write(root, rank=1, world_size=2)  # shards 1 (and 3): not locked by the holder
+        assert other_rank.shards_written == 0 and other_rank.shards_skipped == 1
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert _write(root).shards_written == 1 and not live.exists()  # the holder died: its leftover goes
+
+
+_SYNTH_WITH_WORKERS = """
+import sys
+from facenormals.data import write_dataset
+if __name__ == "__main__":
+    write_dataset(sys.argv[1], 400, workers=2, model_spec="builtin", shard_size=400, progress=False)
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads the process table from /proc")
+def test_render_workers_end_with_a_killed_synth(tmp_path):
+    """Regression: kill -9 (or SIGTERM) of a `synth --workers 2` left its two render workers alive,
+    re-parented and blocked forever on the result pipe, each holding the model and an OpenGL context."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from facenormals.data.gl_platform import select_gl_platform
+
+    try:
+        select_gl_platform()
+    except HeadlessGLError as error:
+        pytest.skip(f"no headless OpenGL: {error}")
+    script = tmp_path / "synth_script.py"
+    script.write_text(_SYNTH_WITH_WORKERS)
+
+    def children(pid):
+        found = []
+        for entry in os.listdir("/proc"):
+            try:
+                with open(f"/proc/{entry}/stat") as handle:
+                    fields = handle.read().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            if entry.isdigit() and int(fields[1]) == pid:
+                found.append(int(entry))
+        return found
+
+    def alive(pid):
+        try:
+            with open(f"/proc/{pid}/stat") as handle:
+                return handle.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    main = subprocess.Popen([sys.executable, str(script), str(tmp_path / "data")])
+    try:
+        deadline = time.time() + 60
+        while len(workers := [p for p in children(main.pid) if "spawn_main" in
+                              open(f"/proc/{p}/cmdline").read().replace("\0", " ")]) < 2 and time.time() < deadline:
+            time.sleep(0.2)
+        assert len(workers) == 2, "the render workers did not start"
+        time.sleep(1.0)  # rendering
+    finally:
+        main.send_signal(signal.SIGKILL)
+        main.wait()
+    deadline = time.time() + 10
+    while any(alive(p) for p in workers) and time.time() < deadline:
+        time.sleep(0.2)
+    left = [p for p in workers if alive(p)]
+    for p in left:
+        os.kill(p, signal.SIGKILL)
+    assert not left, f"workers {left} outlived their killed parent"

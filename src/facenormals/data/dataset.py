@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from facenormals.core.check import check_positive
+from facenormals.core.check import check_integer, check_positive
 from facenormals.data.landmark_maps import DEFAULT_SIGMA, landmark_maps
 from facenormals.data.shards import (MANIFEST, SHARD_ARRAYS, read_manifest, read_member, shard_is_complete,
                                      shard_name, shard_range)
@@ -44,7 +44,12 @@ class SyntheticHeadDataset(Dataset):
 
     Raises:
         FileNotFoundError: if the manifest or (unless ``allow_missing``) a shard is missing.
-        ValueError: on a bad manifest or ``sigma``.
+        ValueError: on a bad manifest, ``root`` (not a folder name), ``sigma`` or ``augment`` (neither
+            ``None`` nor callable).
+
+    Items are indexed as a sequence: ``index`` an integer (a Python or numpy integer or an integer
+    0-d tensor, as samplers pass; ``ValueError`` naming ``index`` otherwise), negative ones counting
+    from the end; one outside ``[-len, len)`` raises ``IndexError``.
 
     Each item is a dict of tensors (``L`` landmarks, ``K`` shape and ``E`` expression coefficients):
 
@@ -67,6 +72,11 @@ class SyntheticHeadDataset(Dataset):
         with_landmark_maps: bool = True,
     ) -> None:
         self.sigma = check_positive(sigma, "sigma")  # finite: an infinite one failed on every item instead
+        if augment is not None and not callable(augment):  # else every item failed, in DataLoader workers
+            raise ValueError(f"augment: expected None or a callable taking and returning a (3, H, W) image, got "
+                             f"{type(augment).__name__} {augment!r}")
+        if not (isinstance(root, (str, os.PathLike)) and str(root)):
+            raise ValueError(f"root: expected a dataset folder name (str or os.PathLike), got {root!r}")
         self.root = Path(root)
         self.manifest = read_manifest(self.root)
         self.augment = augment
@@ -134,8 +144,9 @@ class SyntheticHeadDataset(Dataset):
             archive.close()
         self._archives, self._tables = {}, {}
 
-    def __getitem__(self, item: int) -> dict[str, torch.Tensor]:
-        if not -len(self) <= item < len(self):
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        item = check_integer(index, "index")  # numpy integers and 0-d integer tensors too; not a bool
+        if not -len(self) <= item < len(self):  # an IndexError, as iteration and DataLoader expect
             raise IndexError(f"index {item} is out of range for {len(self)} samples")
         shard, i = self._items[item]
         S = self.image_size

@@ -29,6 +29,7 @@ import math
 import multiprocessing
 import os
 import sys
+import threading
 import time
 import zipfile
 import zlib
@@ -41,7 +42,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from facenormals.core.check import environment_integer
-from facenormals.core.files import PART, atomic_write
+from facenormals.core.files import PART, atomic_write, hold_locks
 from facenormals.data.backgrounds import PhotoLibrary
 from facenormals.data.generator import GENERATOR_VERSION, SynthBatch, SynthConfig
 
@@ -50,6 +51,8 @@ __all__ = ["SynthSummary", "read_manifest", "write_dataset"]
 FORMAT_NAME = "facenormals-synth"
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
+#: The lock file of the shards being written (a byte per shard, see :func:`~facenormals.core.files.hold_locks`).
+LOCK = ".synth.lock"
 NORMAL_SCALE = 32767.0
 SHARD_ARRAYS = ("index", "landmarks", "landmark_visible", "shape_coeffs", "expression_coeffs", "angles", "rotation",
                 "translation", "intrinsics")
@@ -163,7 +166,17 @@ def shard_is_complete(path: Path, indices: range) -> bool:
 _WORKER: dict = {}
 
 
-def _init_worker(model_spec, config: SynthConfig, seed: int, render_threads: int | None) -> None:
+def _exit_with_parent(parent: int) -> None:
+    """A worker's watchdog thread: end the process once its parent is gone (kill -9, SIGTERM). The
+    workers keep the result pipe's reading end open among themselves, so without this a worker whose
+    parent died blocked forever writing its result, holding the model and an OpenGL context."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+
+def _init_worker(parent: int, model_spec, config: SynthConfig, seed: int, render_threads: int | None) -> None:
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True, name="exit-with-parent").start()
     # Keep a start-up error and raise it from the first task, so that the parent sees the real
     # exception rather than a broken pool.
     try:
@@ -364,31 +377,33 @@ def write_dataset(
                                  "use another folder or the same settings to resume")
     num_shards = -(-count // shard_size)
     mine = [k for k in range(num_shards) if k % world_size == rank]
-    pending = [k for k in mine if not shard_is_complete(root / shard_name(k), shard_range(k, count, shard_size))]
-    chunks = [(r.start + i, min(r.stop, r.start + i + chunk_size))
-              for k in pending for r in [shard_range(k, count, shard_size)] for i in range(0, len(r), chunk_size)]
-    total = sum(b - a for a, b in chunks)
-    if chunks:
-        from facenormals.data.gl_platform import select_gl_platform
+    with hold_locks(root / LOCK, mine, f"out_dir {root}"):  # a second synth into it deleted our temporaries
+        pending = [k for k in mine if not shard_is_complete(root / shard_name(k), shard_range(k, count, shard_size))]
+        chunks = [(r.start + i, min(r.stop, r.start + i + chunk_size))
+                  for k in pending for r in [shard_range(k, count, shard_size)] for i in range(0, len(r), chunk_size)]
+        total = sum(b - a for a, b in chunks)
+        if chunks:
+            from facenormals.data.gl_platform import select_gl_platform
 
-        select_gl_platform()  # fail fast, with the packages to install, before writing anything
-    with atomic_write(path) as part:
-        part.write_text(json.dumps(manifest, indent=1))
-    for k in mine:  # leftovers of a killed run of this rank (temporary names of this and of older versions)
-        for stale in (*root.glob(f".{shard_name(k)}.*{PART}*"), *root.glob(f"{shard_name(k)}.tmp*")):
-            stale.unlink(missing_ok=True)
-    bar = _Progress(total, progress, f"synth rank {rank}/{world_size}" if world_size > 1 else "synth")
-    start = time.time()
-    written = 0
-    try:
-        for shard, batch in _shards(_results(chunks, workers, model_spec, config, seed, render_threads, model),
-                                    pending, count, shard_size, bar.update):
-            write_shard(root / shard_name(shard), batch)
-            written += 1
-    finally:
-        bar.close()
-    return SynthSummary(root=root, shards_written=written, shards_skipped=len(mine) - len(pending), samples=total,
-                        seconds=time.time() - start)
+            select_gl_platform()  # fail fast, with the packages to install, before writing anything
+        with atomic_write(path) as part:
+            part.write_text(json.dumps(manifest, indent=1))
+        for k in mine:  # leftovers of a killed run of this rank (temporary names of this and of older versions);
+            # no other writer's: it would hold the shard's lock
+            for stale in (*root.glob(f".{shard_name(k)}.*{PART}*"), *root.glob(f"{shard_name(k)}.tmp*")):
+                stale.unlink(missing_ok=True)
+        bar = _Progress(total, progress, f"synth rank {rank}/{world_size}" if world_size > 1 else "synth")
+        start = time.time()
+        written = 0
+        try:
+            for shard, batch in _shards(_results(chunks, workers, model_spec, config, seed, render_threads, model),
+                                        pending, count, shard_size, bar.update):
+                write_shard(root / shard_name(shard), batch)
+                written += 1
+        finally:
+            bar.close()
+        return SynthSummary(root=root, shards_written=written, shards_skipped=len(mine) - len(pending), samples=total,
+                            seconds=time.time() - start)
 
 
 def _difference(old: object, new: object) -> str:
@@ -435,7 +450,7 @@ def _results(chunks, workers, model_spec, config, seed, render_threads, model) -
     # does), e.g. when a script that calls write_dataset lacks `if __name__ == "__main__":`.
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(model_spec, config, seed, render_threads)) as pool:
+                             initargs=(os.getpid(), model_spec, config, seed, render_threads)) as pool:
         try:
             yield from pool.map(_work, chunks)
         except BrokenProcessPool as error:
