@@ -277,3 +277,19 @@ def test_a_damaged_byte_in_a_weight_file_fails_its_crc_check(tmp_path):
         assert path.read_bytes() == damaged  # not rewritten
     update_weight_metadata(good, note="again")  # what update_weight_metadata writes stays a torch file
     assert torch.load(good, weights_only=True)["metadata"] == {"note": "again"}
+
+
+@pytest.mark.parametrize("items, match", [
+    ([1], "metadata: expected a dict of plain values (str keys; str, int, float, bool, None, lists and dicts of "
+          "them), got list [1]"),
+    (None, "metadata: expected a dict of plain values"),
+    ("note", "metadata: expected a dict of plain values"),
+    ({1: "x"}, "metadata: expected string keys, got int 1"),
+])
+def test_check_plain_metadata_names_metadata_that_is_not_a_dict(items, match):
+    """Regression: a list was an AttributeError ('list' object has no attribute 'items')."""
+    from facenormals.nn.pretrained import check_plain_metadata
+
+    with pytest.raises(ValueError, match=re.escape(match)):
+        check_plain_metadata(items)
+    check_plain_metadata({"note": {"run": "x", "steps": [1, 2.5, None, True]}})

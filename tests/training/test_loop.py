@@ -1,4 +1,5 @@
 import csv
+import os
 import re
 
 import pytest
@@ -61,6 +62,8 @@ def test_resume_is_bitwise_identical_for_the_same_config(tmp_path):
     rows = {r["step"]: float(r["loss"]) for r in csv.DictReader((tmp_path / "b" / "run" / "log.csv").open())}
     reference = {r["step"]: float(r["loss"]) for r in csv.DictReader((tmp_path / "a" / "run" / "log.csv").open())}
     assert 0.75 < rows["4"] / reference["4"] < 1.33 and rows["6"] == reference["6"]
+    # the step before the stop (3, not a multiple of log_every) is logged at the stop, not lost
+    assert list(rows) == ["2", "3", "4", "6", "8"] and 0.75 < rows["3"] / reference["4"] < 1.33
     a, b = load_checkpoint(straight.checkpoint), load_checkpoint(resumed.checkpoint)
     for key in a["model"]:
         torch.testing.assert_close(b["model"][key], a["model"][key], rtol=0, atol=0)
@@ -620,7 +623,7 @@ def test_a_damaged_checkpoint_is_named_and_never_resumed_or_exported(tmp_path, g
     torch.save(state, last)
     with pytest.raises(ValueError, match=f"{re.escape(str(last))}: {message}"):
         train(config, TinyHeads(8), progress=False)
-    assert sorted(p.name for p in last.parent.iterdir()) == ["last.pt"]  # no log rows, nothing overwritten
+    assert sorted(p.name for p in last.parent.iterdir()) == [".train.lock", "last.pt"]  # no log rows, nothing overwritten
     if "loading its" not in message and "landmarks" not in message:  # what load_checkpoint itself sees
         with pytest.raises(ValueError, match=f"{re.escape(str(last))}: {message}"):
             export_weights(last, tmp_path / "w.pt")
@@ -686,3 +689,76 @@ def test_a_damaged_byte_in_a_checkpoint_fails_its_crc_check(tmp_path, good_check
         with pytest.raises(ValueError, match=message):
             export_weights(path, tmp_path / "w.pt")
         assert not (tmp_path / "w.pt").exists()
+
+
+@pytest.mark.parametrize("metadata", [[1], "note", ({"note": 1},), 0, {3: "x"}])
+def test_export_weights_names_metadata_that_is_not_a_dict_of_plain_values(tmp_path, good_checkpoint, metadata):
+    """Regression: metadata=[1] was an AttributeError ('list' object has no attribute 'items') from deep
+    inside; a falsy non-dict (0) was taken as no metadata."""
+    with pytest.raises(ValueError, match=r"^metadata: expected (a dict of plain values|string keys)"):
+        export_weights(good_checkpoint, tmp_path / "w.pt", metadata=metadata)
+    assert not (tmp_path / "w.pt").exists()
+
+
+def test_export_weights_names_an_out_that_is_no_file_name(tmp_path, good_checkpoint, monkeypatch):
+    """Regression: out="" was OSError [Errno 16] Device or resource busy: '.', an existing folder an
+    IsADirectoryError, a path under a file a FileExistsError, out=3 a TypeError."""
+    from facenormals.training import save_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "file").write_text("x")
+    for out, match in (("", "out: expected a file name (str or os.PathLike), got ''"),
+                       (3, "out: expected a file name (str or os.PathLike), got 3"),
+                       (None, "out: expected a file name (str or os.PathLike), got None"),
+                       (tmp_path / "folder", f"out: expected a file name, got {str(tmp_path / 'folder')!r}, which is "
+                                             "a folder"),
+                       (tmp_path / "file" / "w.pt", f"out: {str(tmp_path / 'file' / 'w.pt')!r} cannot be written: "
+                                                    f"{str(tmp_path / 'file')!r} is a file, not a folder")):
+        with pytest.raises(ValueError, match=re.escape(match)):
+            export_weights(good_checkpoint, out)
+        with pytest.raises(ValueError, match=re.escape(match.replace("out:", "path:", 1))):
+            save_checkpoint(out, torch.load(good_checkpoint, weights_only=True))
+    with pytest.raises(ValueError, match=re.escape("checkpoint: expected a file name (str or os.PathLike), got int 3")):
+        export_weights(3, tmp_path / "w.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "folder"]
+    assert not any((tmp_path / "folder").iterdir()) and (tmp_path / "file").read_text() == "x"
+
+
+_RUN_LOCK_HOLDER = """
+import sys, time
+from facenormals.core.files import hold_locks
+with hold_locks(sys.argv[1], [0], "held"):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="advisory locks are POSIX")
+def test_a_second_run_on_a_folder_in_use_is_refused(tmp_path):
+    """Regression: the same train command started twice (a job resubmitted while the first still ran)
+    exited 0 twice with log.csv rows dropped (the second's start-up truncation), duplicated and
+    interleaved. The run folder's lock now refuses the second, leaving the folder as it was."""
+    import signal
+    import subprocess
+    import sys
+
+    from facenormals.core.files import FolderInUseError
+    from facenormals.training.loop import LOCK
+
+    train(_config(tmp_path, steps=2, log_every=1), TinyHeads(4), progress=False)
+    run = tmp_path / "run"
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    holder = subprocess.Popen([sys.executable, "-c", _RUN_LOCK_HOLDER, str(run / LOCK)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderInUseError, match=f"out {run}: another process is writing it"):
+            train(_config(tmp_path, steps=4, log_every=1), TinyHeads(4), progress=False)
+        assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    summary = train(_config(tmp_path, steps=4, log_every=1), TinyHeads(4), progress=False)  # free again: resumes
+    assert summary.step == 4
+    assert [int(r["step"]) for r in csv.DictReader((run / "log.csv").open())] == [1, 2, 3, 4]

@@ -113,7 +113,8 @@ def _read_payload(path: Path) -> dict:
 def check_plain_metadata(items: dict, prefix: str = "metadata") -> None:
     """Raise ``ValueError`` naming the first entry of ``items`` that is not JSON-like plain data: a
     numpy number or a path would make ``torch.load(..., weights_only=True)`` refuse the whole file,
-    and tensors are refused too (metadata stays readable as plain values; store ``tensor.tolist()``)."""
+    and tensors are refused too (metadata stays readable as plain values; store ``tensor.tolist()``).
+    ``items`` itself must be a ``dict`` (``ValueError`` naming ``prefix`` otherwise)."""
     def check(value: object, name: str) -> None:
         if type(value) in (str, int, float, bool, type(None)):
             return
@@ -130,7 +131,12 @@ def check_plain_metadata(items: dict, prefix: str = "metadata") -> None:
         raise ValueError(f"{name}: expected plain data (str, int, float, bool, None, lists and dicts of them), "
                          f"got {type(value).__module__}.{type(value).__name__} {value!r}; convert it, e.g. float(x)")
 
+    if not isinstance(items, dict):
+        raise ValueError(f"{prefix}: expected a dict of plain values (str keys; str, int, float, bool, None, lists "
+                         f"and dicts of them), got {type(items).__name__} {items!r}")
     for key, value in items.items():
+        if type(key) is not str:
+            raise ValueError(f"{prefix}: expected string keys, got {type(key).__name__} {key!r}")
         check(value, f"{prefix}[{key!r}]")
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Callable
 
@@ -15,6 +16,21 @@ from facenormals.nn.pretrained import (WEIGHTS_FORMAT, WEIGHTS_VERSION, check_pl
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
 
 
+def _check_file_name(value: object, name: str) -> Path:
+    """``value`` as a ``Path``, or ``ValueError`` naming ``name`` unless it is a non-empty ``str`` /
+    ``os.PathLike`` naming no folder and no path under a file (``""`` is the working folder: the write
+    failed with ``OSError: Device or resource busy: '.'``, a folder with ``IsADirectoryError``)."""
+    if not (isinstance(value, (str, os.PathLike)) and str(value)):
+        raise ValueError(f"{name}: expected a file name (str or os.PathLike), got {value!r}")
+    path = Path(value)
+    if path.is_dir():
+        raise ValueError(f"{name}: expected a file name, got {str(path)!r}, which is a folder")
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"{name}: {str(path)!r} cannot be written: {str(blocking)!r} is a file, not a folder")
+    return path
+
+
 def save_checkpoint(path: str | Path, state: dict) -> Path:
     """Write ``state`` with :func:`torch.save` atomically and durably
     (:func:`~facenormals.core.files.atomic_write`): a run killed while saving, or a machine that
@@ -26,9 +42,11 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     that cannot be resumed.
 
     Raises:
+        ValueError: naming ``path`` unless it is a non-empty file name (not a folder, not under a file).
         ValueError: naming ``state`` when it is not a dictionary of either kind, or a training
             checkpoint that lacks or mistypes an entry :func:`load_checkpoint` requires.
     """
+    _check_file_name(path, "path")
     if not isinstance(state, dict):
         raise ValueError(f"state: expected a dictionary (a training checkpoint), got {type(state).__name__}")
     kind = state.get("format")
@@ -141,14 +159,19 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
         ``out``.
 
     Raises:
-        ValueError: when ``out`` is ``checkpoint`` itself (the training state would be lost), ``dtype``
-            is not a floating dtype or ``metadata`` is not plain data or holds an invalid
+        ValueError: when ``out`` is not a file name (empty, a folder, under a file) or is ``checkpoint``
+            itself (the training state would be lost), ``checkpoint`` is not a file name, ``dtype`` is
+            not a floating dtype or ``metadata`` is not a dict of plain data or holds an invalid
             ``landmark_threshold``.
     """
+    if not isinstance(checkpoint, (str, os.PathLike)):
+        raise ValueError(f"checkpoint: expected a file name (str or os.PathLike), got {type(checkpoint).__name__} "
+                         f"{checkpoint!r}")
+    out = _check_file_name(out, "out")
     if dtype not in (torch.float16, torch.bfloat16, torch.float32):
         raise ValueError(f"dtype: expected torch.float16, torch.bfloat16 or torch.float32, got {dtype}")
-    check_plain_metadata(metadata or {})
-    if Path(out).resolve() == Path(checkpoint).resolve():
+    check_plain_metadata({} if metadata is None else metadata)
+    if out.resolve() == Path(checkpoint).resolve():
         raise ValueError(f"out: {out} is the checkpoint being exported; writing the weights over it would lose "
                          "the training state, choose another file")
     state = load_checkpoint(checkpoint)

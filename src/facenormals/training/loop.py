@@ -8,6 +8,7 @@ per batch on the training device and the paper's blur + noise augmentation runs 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import csv
 import io
@@ -21,7 +22,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from facenormals.core.files import PART, atomic_write
+from facenormals.core.files import PART, atomic_write, hold_locks
 from facenormals.data.augment import PhotoAugmentation
 from facenormals.data.landmark_maps import landmark_maps
 from facenormals.nn.loss import _foreground_pixel_mask, normal_landmark_loss
@@ -33,6 +34,8 @@ from facenormals.training.metrics import NetworkMetrics, evaluate_network
 
 __all__ = ["TrainSummary", "train"]
 
+#: The lock file of a run folder, held by the process that writes it (rank 0).
+LOCK = ".train.lock"
 _LOG_FIELDS = ["step", "epoch", "samples_seen", "loss", "normals", "landmarks", "foreground", "lr",
                "images_per_s", "elapsed_s"]
 _EVAL_FIELDS = ["step", "samples_seen"] + list(NetworkMetrics.__dataclass_fields__)
@@ -278,7 +281,18 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
 
     Returns:
         A :class:`TrainSummary`.
+
+    Raises:
+        FolderInUseError: (a ``ValueError``) when another process trains into ``config.out``: two runs
+            on one folder had interleaved, dropped and duplicated their log rows.
     """
+    with contextlib.ExitStack() as locks:
+        return _train(config, dataset, holdout, progress, locks)
+
+
+def _train(config: TrainConfig, dataset: Dataset | None, holdout: Dataset | None, progress: bool,
+           locks: contextlib.ExitStack) -> TrainSummary:
+    """:func:`train`, holding the run folder's lock in ``locks`` from the moment the folder exists."""
     ctx = init_distributed(config.device)
     if config.threads is not None and ctx.device.type == "cpu":
         torch.set_num_threads(config.threads)
@@ -305,6 +319,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
         _initialise_from(net, ema, config)
     if ctx.is_main:  # only now: a run refused for its data or --init leaves no empty folder
         out.mkdir(parents=True, exist_ok=True)
+        locks.enter_context(hold_locks(out / LOCK, [0], f"out {out}"))  # rank 0 writes the folder's files
     optimizer = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     step, samples_seen = 0, 0
     if ctx.is_main:  # checkpoint-sized temporaries of runs killed while saving
@@ -411,6 +426,25 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
     running: dict[str, float] = {}
     window_steps = 0  # steps summed in ``running`` (fewer than log_every in the first window of a resumed run)
     already_finished = step >= config.steps  # a rerun of a finished run writes nothing
+
+    def log_window() -> None:
+        """Append a row of the losses averaged over the steps since the last one (on every rank)."""
+        nonlocal running, window_start, window_images, window_steps
+        now = time.perf_counter()
+        if ctx.distributed:  # the losses of the whole global batch, not rank 0's share
+            keys = sorted(running)
+            sums = torch.tensor([running[k] for k in keys], dtype=torch.float64, device=ctx.device)
+            torch.distributed.all_reduce(sums)
+            running = dict(zip(keys, (sums / ctx.world_size).tolist()))
+        row = {k: v / window_steps for k, v in running.items()}
+        row.update(step=step, epoch=samples_seen / len(dataset), samples_seen=samples_seen,
+                   lr=config.learning_rate(step - 1), images_per_s=window_images / max(now - window_start, 1e-9),
+                   elapsed_s=now - start)
+        running, window_start, window_images, window_steps = {}, now, 0, 0
+        if ctx.is_main:
+            _append_csv(out / "log.csv", _LOG_FIELDS, row)
+            if bar is not None:
+                bar.set_postfix(loss=f"{row['loss']:.4f}", img_s=f"{row['images_per_s']:.1f}")
     batches = None
     try:
         batches = iter(loader)
@@ -447,6 +481,8 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
                                          f"here); {resume_advice()}")
             if flags[0] or flags[1]:
                 stopped_by = "signal" if flags[0] else "max_minutes"
+                if window_steps:  # the steps since the last row, which a resume does not repeat
+                    log_window()
                 break
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -470,21 +506,7 @@ def train(config: TrainConfig, dataset: Dataset | None = None, holdout: Dataset 
             for key, value in (("loss", loss), *terms.items()):
                 running[key] = running.get(key, 0.0) + float(value.detach())
             if step % config.log_every == 0 or step == config.steps:
-                now = time.perf_counter()
-                if ctx.distributed:  # the losses of the whole global batch, not rank 0's share
-                    keys = sorted(running)
-                    sums = torch.tensor([running[k] for k in keys], dtype=torch.float64, device=ctx.device)
-                    torch.distributed.all_reduce(sums)
-                    running = dict(zip(keys, (sums / ctx.world_size).tolist()))
-                row = {k: v / window_steps for k, v in running.items()}
-                row.update(step=step, epoch=samples_seen / len(dataset), samples_seen=samples_seen, lr=lr,
-                           images_per_s=window_images / max(now - window_start, 1e-9),
-                           elapsed_s=now - start)
-                running, window_start, window_images, window_steps = {}, now, 0, 0
-                if ctx.is_main:
-                    _append_csv(out / "log.csv", _LOG_FIELDS, row)
-                    if bar is not None:
-                        bar.set_postfix(loss=f"{row['loss']:.4f}", img_s=f"{row['images_per_s']:.1f}")
+                log_window()
             if bar is not None:
                 bar.update(1)
             if step % config.eval_every == 0 and step < config.steps:  # before the checkpoint: a run killed
