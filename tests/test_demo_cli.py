@@ -452,3 +452,21 @@ def test_demo_names_a_bad_image_size_and_an_empty_output_folder(tmp_path, monkey
     with pytest.raises(ValueError, match="out_dir: expected a folder name or None, got ''"):
         run_demo(model, out_dir="", log=lambda *_: None)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_train_help_shows_the_defaults_of_a_new_run(capsys):
+    """train --help showed no default (its options default to None, so that a resume keeps the
+    checkpoint's settings); it now shows TrainConfig's, which it reads rather than copies."""
+    import re
+
+    from facenormals.training import TrainConfig
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    config = TrainConfig(data="d", out="o")
+    for option, field in (("steps", "steps"), ("batch-size", "batch_size"), ("sigma", "sigma"), ("lr", "lr"),
+                          ("log-every", "log_every"), ("depth", "depth")):
+        assert re.search(rf"--{option} \S+ [^-]*default {re.escape(str(getattr(config, field)))}\b", text), option
+    assert "--max-minutes MAX_MINUTES stop with a checkpoint after this wall time; default: no limit" in text
+    assert "keeps the checkpoint's settings for the options the command leaves out" in text

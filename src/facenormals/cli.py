@@ -389,10 +389,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train the normal + landmark network on synthetic data (resumes from OUT/last.pt)",
                            description="Single process: `facenormals train ...`; several GPUs or machines: "
-                                       "`torchrun --nproc-per-node N -m facenormals.cli train ...` (DDP).")
+                                       "`torchrun --nproc-per-node N -m facenormals.cli train ...` (DDP). A run "
+                                       "that resumes OUT/last.pt keeps the checkpoint's settings for the options "
+                                       "the command leaves out; the defaults below are those of a new run.")
     train.add_argument("--data", required=True, help="training dataset folder (facenormals synth)")
     train.add_argument("--out", required=True, help="run folder: last.pt, log.csv, eval.csv")
     train.add_argument("--holdout", default=None, help="held-out dataset folder scored during training")
+    from facenormals.training.config import TrainConfig
+
+    train_defaults = TrainConfig.__dataclass_fields__
     for name, kind, text in (
         ("steps", int, "optimiser steps of the whole run"), ("batch-size", int, "images per step and process"),
         ("lr", float, "peak AdamW learning rate"), ("warmup-steps", int, None),
@@ -406,7 +411,11 @@ def build_parser() -> argparse.ArgumentParser:
         ("eval-samples", int, None), ("max-minutes", float, "stop with a checkpoint after this wall time"),
         ("base-channels", int, None), ("depth", int, None),
     ):
-        train.add_argument(f"--{name}", type=kind, default=None, help=text)
+        default = train_defaults[name.replace("-", "_")].default
+        shown = f"default {default}" if default is not None else {"threads": "default: torch's",
+                                                                   "max-minutes": "default: no limit"}[name]
+        train.add_argument(f"--{name}", type=kind, default=None,  # None: a resume keeps the checkpoint's value
+                           help=f"{text}; {shown}" if text else shown)
     train.add_argument("--device", default=None, help="auto (default), cpu, cuda or cuda:N")
     train.add_argument("--init", default=None, metavar="WEIGHTS",
                        help="start a new run from these weights (fine-tuning); ignored when OUT/last.pt exists")
