@@ -470,3 +470,18 @@ def test_train_help_shows_the_defaults_of_a_new_run(capsys):
         assert re.search(rf"--{option} \S+ [^-]*default {re.escape(str(getattr(config, field)))}\b", text), option
     assert "--max-minutes MAX_MINUTES stop with a checkpoint after this wall time; default: no limit" in text
     assert "keeps the checkpoint's settings for the options the command leaves out" in text
+
+
+def test_train_names_the_option_that_differs_from_the_checkpoint(tmp_path, monkeypatch, capsys):
+    """The architecture refusal named the library's field ("config.base_channels: 8 differs from the
+    checkpoint's 16") to a command-line user, who set --base-channels."""
+    import facenormals.training as training
+
+    def refuse(config, progress=True):
+        raise ValueError(f"config.base_channels: {config.base_channels} differs from the checkpoint's 16 in "
+                         f"{config.out}/last.pt; use another --out to start afresh")
+
+    monkeypatch.setattr(training, "train", refuse)
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--base-channels", "8",
+                 "--quiet"]) == 1
+    assert "facenormals train: error: --base-channels: 8 differs from the checkpoint's 16" in capsys.readouterr().err

@@ -217,7 +217,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise
     if args.export is not None:
         _check_export_path(args.export, Path(config.out), config.init)
-    summary = train(config, progress=not args.quiet)
+    try:
+        summary = train(config, progress=not args.quiet)
+    except ValueError as error:  # e.g. "config.base_channels: 8 differs from the checkpoint's 16": the option
+        name, _, rest = str(error).partition(": ")
+        if name.startswith("config.") and name[len("config."):] in fields:
+            raise ValueError(f"--{name[len('config.'):].replace('_', '-')}: {rest}") from None
+        raise
     if environment_integer("RANK", 0) != 0:  # under torchrun only rank 0 reports and exports
         return 130 if summary.stopped_by == "signal" else 0
     print(f"{summary.checkpoint}: step {summary.step}/{config.steps}, {summary.samples_seen} samples seen "
