@@ -13,7 +13,7 @@ import warnings
 from dataclasses import dataclass, field
 from numbers import Real
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -288,15 +288,19 @@ def _landmark_facing(vertices: Tensor, model: MorphableModel, rotation: Tensor, 
     return cosine.masked_fill(~mask.any(-1), float("nan")).reshape(B, V)
 
 
+def _name_views(pairs: list[list[int]], B: int, detail: Callable[[int, int], str]) -> str:
+    """``view v (detail)`` for each ``(b, v)`` of ``pairs``, ``view v of subject b`` in a batch of ``B > 1``."""
+    return ", ".join(f"view {v}{f' of subject {b}' if B > 1 else ''} ({detail(b, v)})" for b, v in pairs)
+
+
 def _warn_facing_away(facing: Tensor, angles: Tensor) -> None:
     """Warn, naming the views, where the fitted head faces away from the camera: landmarks given as
     seen cannot sit on its far side, so they are most likely in another convention (left and right
     swapped, or (row, column)), and the fit, reported converged, is not a face seen from the front."""
     away = (facing > FACING_AWAY_COSINE).nonzero().tolist()
     if away:
-        B = facing.shape[0]
-        views = ", ".join(f"view {v}{f' of subject {b}' if B > 1 else ''} (yaw {math.degrees(float(angles[b, v, 2])):+.0f}"
-                          f" deg, cosine {float(facing[b, v]):.2f})" for b, v in away)
+        views = _name_views(away, facing.shape[0], lambda b, v: f"yaw {math.degrees(float(angles[b, v, 2])):+.0f} "
+                                                                f"deg, cosine {float(facing[b, v]):.2f}")
         warnings.warn(f"fit_head: the fitted head faces away from the camera in {views}, with the landmarks said "
                       "to be seen on its far side: are they in model.landmark_names order with the subject's left "
                       "and right (not the image's), and in (x, y) = (column, row) pixels? See "
@@ -313,9 +317,8 @@ def _warn_unconverged_prealignment(status: Tensor, rms_px: Tensor) -> None:
     starts from that pose and may end in a wrong minimum while its own status says converged."""
     stuck = (status != LMStatus.CONVERGED).nonzero().tolist()
     if stuck:
-        B = status.shape[0]
-        views = ", ".join(f"view {v}{f' of subject {b}' if B > 1 else ''} ({float(rms_px[b, v]):.2g} px, "
-                          f"{LMStatus(int(status[b, v])).name})" for b, v in stuck)
+        views = _name_views(stuck, status.shape[0],
+                            lambda b, v: f"{float(rms_px[b, v]):.2g} px, {LMStatus(int(status[b, v])).name}")
         warnings.warn(f"fit_head: the landmark pre-alignment did not converge for {views}; the fit starts from "
                       "that pose and may end in a wrong one (a near-orthographic camera, f above ~10^4 px, or "
                       "inconsistent landmarks): check FitResult.prealignment_rms_px and landmark_rms_px, or pass "
