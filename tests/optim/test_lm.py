@@ -728,3 +728,43 @@ def test_ftol_stops_at_a_noisy_floor_like_minpack():
     assert exhaustive.reasons == ["step below xtol"]
     assert int(stopped.iterations[0]) < int(exhaustive.iterations[0])
     torch.testing.assert_close(stopped.cost, exhaustive.cost, rtol=1e-3, atol=0.0)
+
+
+def test_a_strict_normal_equations_fn_never_sees_an_element_bad_at_x0_with_active_subset():
+    """Regression: with active_subset=True the first normal equations were asked of every element,
+    so facenormals.optim.normal_equations (which refuses NaN) failed the whole batch for one element
+    whose residuals were NaN at x0, instead of stopping that element alone."""
+    from facenormals.optim import normal_equations
+
+    def residuals(x, index=None):
+        return torch.stack([torch.log(x[:, 0]) - 1.0, x[:, 1] - 2.0], -1)
+
+    def jacobian(x):
+        zero, one = torch.zeros_like(x[:, 0]), torch.ones_like(x[:, 0])
+        return torch.stack([torch.stack([1 / x[:, 0], zero], -1), torch.stack([zero, one], -1)], 1)
+
+    x0 = torch.tensor([[1.0, 1.0], [-1.0, 1.0], [2.0, 5.0]], dtype=torch.float64)  # element 1: log(-1)
+    seen = []
+
+    def strict(x, r, index):
+        seen.append(index.tolist())
+        return normal_equations(jacobian(x), r)
+
+    result = levenberg_marquardt(residuals, x0, normal_equations_fn=strict, active_subset=True)
+    assert seen[0] == [0, 2] and all(1 not in call for call in seen)
+    assert result.status.tolist() == [LMStatus.CONVERGED, LMStatus.FAILED, LMStatus.CONVERGED]
+    assert result.reasons[1] == "non-finite residuals or cost at x0"
+    assert_close(result.x[[0, 2]], torch.tensor([[math.e, 2.0]] * 2, dtype=torch.float64))
+
+
+def test_flags_and_a_zero_dimensional_damping():
+    """active_subset='no' was taken as True (the one-argument residual_fn then failed with a bare
+    TypeError) and verbose='no' printed; a 0-d damping tensor was refused as not a finite number >= 0."""
+    x0 = torch.tensor([[3.0]], dtype=torch.float64)
+    for name in ("active_subset", "verbose"):
+        with pytest.raises(ValueError, match=f"{name}: expected True or False, got 'no'"):
+            levenberg_marquardt(lambda x: x - 1.0, x0, **{name: "no"})
+    tensor_damping = levenberg_marquardt(lambda x: x - 1.0, x0, damping=torch.tensor(1e-3, dtype=torch.float64))
+    number_damping = levenberg_marquardt(lambda x: x - 1.0, x0, damping=1e-3)
+    assert torch.equal(tensor_damping.x, number_damping.x)
+    assert torch.equal(tensor_damping.iterations, number_damping.iterations)

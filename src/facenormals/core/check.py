@@ -24,6 +24,7 @@ __all__ = [
     "check_device",
     "check_faces",
     "check_finite",
+    "check_flag",
     "check_floating",
     "check_folder_name",
     "check_image_size",
@@ -48,6 +49,23 @@ MILLIMETRE_SPAN = (50.0, 5000.0)
 def _format_shape(shape: Sequence[str | int]) -> str:
     items = [str(s) for s in shape]
     return "(" + ", ".join(items) + ("," if len(items) == 1 else "") + ")"
+
+
+def check_flag(value: object, name: str) -> bool:
+    """``value`` as a ``bool``, or ``ValueError`` naming ``name`` unless it is ``True`` or ``False`` (a
+    NumPy bool too): a string such as ``"no"`` is truthy and would switch the option on.
+
+    Example:
+        >>> check_flag(False, "verbose")
+        False
+        >>> check_flag("no", "verbose")
+        Traceback (most recent call last):
+        ...
+        ValueError: verbose: expected True or False, got 'no'
+    """
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name}: expected True or False, got {value!r}")
+    return bool(value)
 
 
 def check_folder_name(value: object, name: str) -> None:

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_floating, check_integer, check_real, check_shape, check_tensor
+from facenormals.core.check import (check_finite, check_flag, check_floating, check_integer, check_real, check_shape,
+                                    check_tensor)
 from facenormals.fitting.pose import FACING_AWAY_COSINE, facing_cosine, prealign_pose, require_pose_landmarks
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.robust import check_scale
@@ -409,9 +410,7 @@ def fit_head(
     import time
 
     start = time.perf_counter()
-    for name, flag in (("fit_intrinsics", fit_intrinsics), ("fit_expression", fit_expression)):
-        if not isinstance(flag, (bool, np.bool_)):  # "no" is truthy
-            raise ValueError(f"{name}: expected True or False, got {flag!r}")
+    fit_intrinsics, fit_expression = check_flag(fit_intrinsics, "fit_intrinsics"), check_flag(fit_expression, "fit_expression")
     rounds = check_integer(rounds, "rounds", minimum=1)
     iterations_per_round = check_integer(iterations_per_round, "iterations_per_round", minimum=1)
     visibility_rounds = check_integer(visibility_rounds, "visibility_rounds", minimum=1)

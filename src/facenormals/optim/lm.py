@@ -26,7 +26,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from facenormals.core.check import check_finite, check_integer, check_nonnegative, check_positive, check_shape
+from facenormals.core.check import (check_finite, check_flag, check_integer, check_nonnegative, check_positive,
+                                    check_shape)
 from facenormals.optim.normal_equations import gram
 
 __all__ = ["LMResult", "LMStatus", "levenberg_marquardt"]
@@ -164,7 +165,7 @@ def _check_options(
         raise ValueError(f"damping_mode: expected 'marquardt' or 'levenberg', got {damping_mode!r}")
     if jacobian_mode not in ("forward", "reverse"):
         raise ValueError(f"jacobian_mode: expected 'forward' or 'reverse', got {jacobian_mode!r}")
-    if isinstance(damping, Tensor):
+    if isinstance(damping, Tensor) and damping.dim() != 0:  # a 0-d tensor is a number, checked below
         if damping.dim() != 1 or not bool(torch.isfinite(damping).all()) or bool((damping < 0).any()):
             raise ValueError(f"damping: expected a finite number >= 0 or a (B,) tensor of them, got {damping!r}")
         damping = 0.0
@@ -254,13 +255,20 @@ def levenberg_marquardt(
     **Damping.** ``"marquardt"`` scales the damping by the curvature of each parameter,
     :math:`D = \operatorname{diag}(\max(d, \epsilon \max_j d_j))`, where :math:`d` is the running
     maximum of :math:`\operatorname{diag}(J^\top J)` over the accepted points (Moré's scaling, as in
-    MINPACK: a parameter whose column shrinks near a point keeps its damping, which avoids the slow
-    crawl of the plain :math:`\operatorname{diag}(J^\top J)` scaling on banana-shaped valleys). It
-    is invariant to the units of the parameters, and a parameter with a zero Jacobian column gets
+    MINPACK: a parameter whose column shrinks near a point keeps its damping; on Rosenbrock's valley
+    from the classic start (−1.2, 1) it takes 20 iterations where the plain
+    :math:`\operatorname{diag}(J^\top J)` takes 33, but from far starts such as (100, −100) both
+    crawl, 123 and 88 iterations, where ``"levenberg"`` takes 8 and scipy's MINPACK ``lm`` 4
+    evaluations). The damping is invariant to the units of the parameters, and a parameter with a zero Jacobian column gets
     a tiny positive damping and a zero step. ``"levenberg"`` uses :math:`D = I`. Where the
     Cholesky factorisation of :math:`H + \lambda D` fails, that element's step is computed with the
     pseudo-inverse (:func:`torch.linalg.pinv`, hermitian) instead and judged by its gain ratio like
-    any other step; a bad step is rejected and raises the damping. No element can crash the batch.
+    any other step; a bad step is rejected and raises the damping. No element can crash the batch
+    through the solver: an element with non-finite residuals or Jacobian stops (``FAILED``) and the
+    others go on. Without ``active_subset`` the user's functions are called for every element,
+    including those stopped as non-finite, so a function that refuses non-finite values (such as
+    :func:`normal_equations`, which raises) fails the whole call there; with ``active_subset=True``
+    they are called only for the elements still being solved.
 
     The solver runs under :func:`torch.no_grad`: the result is not differentiable with respect to
     ``x0`` or tensors captured by ``residual_fn``. The loop synchronises with the device about
@@ -284,7 +292,10 @@ def levenberg_marquardt(
         damping_mode: ``"marquardt"`` (scaled by ``diag(JᵀJ)``, see above) or ``"levenberg"``
             (identity).
         ftol: relative cost reduction tolerance.
-        xtol: relative step size tolerance.
+        xtol: relative step size tolerance, against ``‖x‖`` as in scipy's ``trf`` (so not invariant
+            to the parameters' units: next to a parameter of 1e8 every step below ~0.01 counts as
+            small, and a fit of a 1e-3 parameter then stops short, reported converged; give the
+            parameters comparable magnitudes, or ``xtol=0`` to stop on ``ftol``/``gtol`` alone).
         gtol: absolute tolerance on the gradient's infinity norm.
         min_damping: lower bound of λ after an update (must be > 0).
         max_damping: an element whose λ grows beyond this fails.
@@ -294,8 +305,9 @@ def levenberg_marquardt(
             the dtype of ``x0``); ``jacobian_fn`` may return this dtype directly. ``torch.float32``
             on a float64 problem makes the normal equations about 3× cheaper on a CPU. The
             residuals, costs, gain ratios and the solve stay in the dtype of ``x0``, so steps are
-            inexact Gauss-Newton steps that still converge to the float64 optimum (the final
-            cost agrees to far better than 1e-6 relative; ``x`` to about 1e-6).
+            inexact Gauss-Newton steps that still converge to the float64 optimum (with float32 the
+            final cost agrees to far better than 1e-6 relative, ``x`` to about 1e-6; ``bfloat16``,
+            8 bits of mantissa, leaves ~1e-7 in the cost and ~3e-5 in ``x``).
         active_subset: call ``residual_fn`` and ``jacobian_fn`` as ``fn(x[index], index)`` on the
             elements that need them only (see *Batch independence*).
         verbose: print one line per iteration (iteration, mean cost, active elements).
@@ -343,6 +355,9 @@ def levenberg_marquardt(
     check_finite(x0, "x0")
     if chunk_size is not None:
         chunk_size = check_integer(chunk_size, "chunk_size", minimum=1)
+    active_subset, verbose = check_flag(active_subset, "active_subset"), check_flag(verbose, "verbose")
+    if isinstance(damping, Tensor) and damping.dim() == 0:
+        damping = check_nonnegative(damping, "damping")
     if jacobian_dtype is not None and not (isinstance(jacobian_dtype, torch.dtype) and jacobian_dtype.is_floating_point):
         raise ValueError(f"jacobian_dtype: expected a floating torch.dtype or None, got {jacobian_dtype!r}")
     with torch.no_grad():
@@ -459,7 +474,15 @@ def _solve(
         floor = (info_.eps * diag_max_.amax(-1, keepdim=True)).clamp_min(info_.tiny)
         return torch.maximum(diag_max_, floor)
 
-    H, g = normal_equations(x, r, everyone)
+    if active_subset and not bool(active.all()):  # elements bad at x0 are not evaluated (a strict fn raises there)
+        H = torch.full((B, P, P), float("nan"), dtype=dtype, device=device)
+        g = torch.full((B, P), float("nan"), dtype=dtype, device=device)
+        index = active.nonzero().squeeze(1)
+        if index.numel():
+            H_new, g_new = normal_equations(x, r, index)
+            H, g = H.index_copy(0, index, H_new), g.index_copy(0, index, g_new)
+    else:
+        H, g = normal_equations(x, r, everyone)
     finite_jac = torch.isfinite(H).all(-1).all(-1) & torch.isfinite(g).all(-1)
     active = stop(active, (~finite_jac, _BAD_JACOBIAN), (g.abs().amax(-1) <= gtol, _GTOL))
     # Marquardt scaling: the running maximum of diag(JᵀJ) over the accepted points (Moré 1978).
