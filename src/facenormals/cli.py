@@ -253,16 +253,16 @@ def _check_writable(path: str | Path, option: str, folder: bool = False, inputs:
     created (tried by creating one, and the missing folders leading to it, then removing them again;
     under a launcher, ``WORLD_SIZE`` > 1, the folders stay: the ranks run this check at once, and a
     rank removing the folder it made pulled it from under another's probe, or its first shard)."""
-    from facenormals.core.check import environment_integer
+    from facenormals.core.check import check_file_name, environment_integer
     from facenormals.core.files import temporary_beside
 
+    if not folder:
+        path = check_file_name(path, option)
     if str(path) == "":
-        raise ValueError(f"{option}: expected a {'folder' if folder else 'file'} name, got an empty string")
+        raise ValueError(f"{option}: expected a folder name, got an empty string")
     path = Path(path)
     if folder and path.exists() and not path.is_dir():
         raise ValueError(f"{option}: {path} exists and is not a folder")
-    if not folder and path.is_dir():
-        raise ValueError(f"{option}: {path} is a folder; give a file name")
     blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
     if blocking is not None:
         raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")

@@ -711,10 +711,9 @@ def test_export_weights_names_an_out_that_is_no_file_name(tmp_path, good_checkpo
     for out, match in (("", "out: expected a file name (str or os.PathLike), got ''"),
                        (3, "out: expected a file name (str or os.PathLike), got 3"),
                        (None, "out: expected a file name (str or os.PathLike), got None"),
-                       (tmp_path / "folder", f"out: expected a file name, got {str(tmp_path / 'folder')!r}, which is "
-                                             "a folder"),
-                       (tmp_path / "file" / "w.pt", f"out: {str(tmp_path / 'file' / 'w.pt')!r} cannot be written: "
-                                                    f"{str(tmp_path / 'file')!r} is a file, not a folder")):
+                       (tmp_path / "folder", f"out: {tmp_path / 'folder'} is a folder; give a file name"),
+                       (tmp_path / "file" / "w.pt", f"out: {tmp_path / 'file' / 'w.pt'} cannot be written: "
+                                                    f"{tmp_path / 'file'} is a file, not a folder")):
         with pytest.raises(ValueError, match=re.escape(match)):
             export_weights(good_checkpoint, out)
         with pytest.raises(ValueError, match=re.escape(match.replace("out:", "path:", 1))):

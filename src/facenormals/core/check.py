@@ -12,6 +12,7 @@ import math
 import operator
 import os
 from numbers import Real
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -23,6 +24,7 @@ __all__ = [
     "check_all_finite",
     "check_device",
     "check_faces",
+    "check_file_name",
     "check_finite",
     "check_flag",
     "check_floating",
@@ -49,6 +51,31 @@ MILLIMETRE_SPAN = (50.0, 5000.0)
 def _format_shape(shape: Sequence[str | int]) -> str:
     items = [str(s) for s in shape]
     return "(" + ", ".join(items) + ("," if len(items) == 1 else "") + ")"
+
+
+def check_file_name(value: object, name: str) -> Path:
+    """``value`` as a ``Path`` to write a file to, or ``ValueError`` naming ``name`` unless it is a
+    non-empty ``str`` / ``os.PathLike`` that is no folder and lies under no file (``""`` is the working
+    folder: writing it failed with ``OSError: Device or resource busy``, a folder with
+    ``IsADirectoryError``, deep in the writer).
+
+    Example:
+        >>> check_file_name("weights.pt", "out").name
+        'weights.pt'
+        >>> check_file_name("", "out")
+        Traceback (most recent call last):
+        ...
+        ValueError: out: expected a file name (str or os.PathLike), got ''
+    """
+    if not (isinstance(value, (str, os.PathLike)) and str(value)):
+        raise ValueError(f"{name}: expected a file name (str or os.PathLike), got {value!r}")
+    path = Path(value)
+    if path.is_dir():
+        raise ValueError(f"{name}: {path} is a folder; give a file name")
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"{name}: {path} cannot be written: {blocking} is a file, not a folder")
+    return path
 
 
 def check_flag(value: object, name: str) -> bool:

@@ -9,26 +9,12 @@ from typing import Callable
 import torch
 from torch.utils.data import Dataset
 
+from facenormals.core.check import check_file_name
 from facenormals.core.files import atomic_write
 from facenormals.nn.pretrained import (WEIGHTS_FORMAT, WEIGHTS_VERSION, check_plain_metadata, check_threshold,
                                       describe_load_error, describe_zip_damage)
 
 __all__ = ["export_weights", "load_checkpoint", "save_checkpoint"]
-
-
-def _check_file_name(value: object, name: str) -> Path:
-    """``value`` as a ``Path``, or ``ValueError`` naming ``name`` unless it is a non-empty ``str`` /
-    ``os.PathLike`` naming no folder and no path under a file (``""`` is the working folder: the write
-    failed with ``OSError: Device or resource busy: '.'``, a folder with ``IsADirectoryError``)."""
-    if not (isinstance(value, (str, os.PathLike)) and str(value)):
-        raise ValueError(f"{name}: expected a file name (str or os.PathLike), got {value!r}")
-    path = Path(value)
-    if path.is_dir():
-        raise ValueError(f"{name}: expected a file name, got {str(path)!r}, which is a folder")
-    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:
-        raise ValueError(f"{name}: {str(path)!r} cannot be written: {str(blocking)!r} is a file, not a folder")
-    return path
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
@@ -46,7 +32,7 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
         ValueError: naming ``state`` when it is not a dictionary of either kind, or a training
             checkpoint that lacks or mistypes an entry :func:`load_checkpoint` requires.
     """
-    _check_file_name(path, "path")
+    check_file_name(path, "path")
     if not isinstance(state, dict):
         raise ValueError(f"state: expected a dictionary (a training checkpoint), got {type(state).__name__}")
     kind = state.get("format")
@@ -167,7 +153,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
     if not isinstance(checkpoint, (str, os.PathLike)):
         raise ValueError(f"checkpoint: expected a file name (str or os.PathLike), got {type(checkpoint).__name__} "
                          f"{checkpoint!r}")
-    out = _check_file_name(out, "out")
+    out = check_file_name(out, "out")
     if dtype not in (torch.float16, torch.bfloat16, torch.float32):
         raise ValueError(f"dtype: expected torch.float16, torch.bfloat16 or torch.float32, got {dtype}")
     check_plain_metadata({} if metadata is None else metadata)
