@@ -190,17 +190,16 @@ class EvaluationReport:
         out = []
         for name in ALIGNMENTS:
             result = getattr(self, name)
-            if result.alignment_rms > ALIGNMENT_RMS_WARNING and self.similarity.alignment_rms <= ALIGNMENT_RMS_WARNING:
+            if result.alignment_rms > ALIGNMENT_RMS_WARNING:
+                if self.similarity.alignment_rms <= ALIGNMENT_RMS_WARNING:  # only the rigid fit: a size difference
+                    cause = (f", but {self.similarity.alignment_rms:.1f} mm with a scale ({self.similarity.scale:.3g}): "
+                             "the meshes differ in size, which one photo cannot fix; the similarity column scores the "
+                             "shape")
+                else:
+                    cause = (f"; above {ALIGNMENT_RMS_WARNING:g} mm the correspondences are likely wrong (left and "
+                             "right swapped, another vertex order): check them")
                 out.append(f"{name} alignment: its {self.num_alignment_points} corresponding points stay "
-                           f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit, but "
-                           f"{self.similarity.alignment_rms:.1f} mm with a scale ({self.similarity.scale:.3g}): the "
-                           "meshes differ in size, which one photo cannot fix; the similarity column scores "
-                           "the shape")
-            elif result.alignment_rms > ALIGNMENT_RMS_WARNING:
-                out.append(f"{name} alignment: its {self.num_alignment_points} corresponding points stay "
-                           f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit; above "
-                           f"{ALIGNMENT_RMS_WARNING:g} mm the correspondences are likely wrong (left and right "
-                           "swapped, another vertex order): check them")
+                           f"{result.alignment_rms:.1f} mm apart (RMS) after the rough fit{cause}")
             if not result.depth.coverage >= DEPTH_COVERAGE_WARNING:  # NaN too
                 total = self._depth_total
                 which = "front-facing reference points" if total < self.num_points else "reference points"
