@@ -257,15 +257,16 @@ def _check_writable(path: str | Path, option: str, folder: bool = False, inputs:
     from facenormals.core.files import temporary_beside
 
     if not folder:
-        path = check_file_name(path, option)
-    if str(path) == "":
-        raise ValueError(f"{option}: expected a folder name, got an empty string")
-    path = Path(path)
-    if folder and path.exists() and not path.is_dir():
-        raise ValueError(f"{option}: {path} exists and is not a folder")
-    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:
-        raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
+        path = check_file_name(path, option)  # a name, no folder, under no file
+    else:
+        if str(path) == "":
+            raise ValueError(f"{option}: expected a folder name, got an empty string")
+        path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise ValueError(f"{option}: {path} exists and is not a folder")
+        blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+        if blocking is not None:
+            raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
     for name in inputs:
         if name is not None and Path(name).resolve() == path.resolve():
             raise ValueError(f"{option}: {path} is also an input of this command; writing it would destroy the input")
