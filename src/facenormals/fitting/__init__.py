@@ -6,5 +6,19 @@ from facenormals.fitting.pose import FACING_AWAY_COSINE, PoseEstimate, facing_co
 from facenormals.fitting.problem import FitWeights, HeadFitProblem
 from facenormals.fitting.subsample import grid_subset
 
-__all__ = ["FACING_AWAY_COSINE", "FacingAwayWarning", "FitResult", "FitWeights", "HeadFitProblem", "NormalAxisError", "PoseEstimate", "drop_hidden_landmarks",
-           "facing_cosine", "fit_head", "grid_subset", "hidden_landmarks", "landmark_pose_jacobian", "prealign_pose"]
+__all__ = [
+    "FACING_AWAY_COSINE",
+    "FacingAwayWarning",
+    "FitResult",
+    "FitWeights",
+    "HeadFitProblem",
+    "NormalAxisError",
+    "PoseEstimate",
+    "drop_hidden_landmarks",
+    "facing_cosine",
+    "fit_head",
+    "grid_subset",
+    "hidden_landmarks",
+    "landmark_pose_jacobian",
+    "prealign_pose",
+]

@@ -410,7 +410,8 @@ def fit_head(
     import time
 
     start = time.perf_counter()
-    fit_intrinsics, fit_expression = check_flag(fit_intrinsics, "fit_intrinsics"), check_flag(fit_expression, "fit_expression")
+    fit_intrinsics = check_flag(fit_intrinsics, "fit_intrinsics")
+    fit_expression = check_flag(fit_expression, "fit_expression")
     rounds = check_integer(rounds, "rounds", minimum=1)
     iterations_per_round = check_integer(iterations_per_round, "iterations_per_round", minimum=1)
     visibility_rounds = check_integer(visibility_rounds, "visibility_rounds", minimum=1)

@@ -259,8 +259,9 @@ def levenberg_marquardt(
     from the classic start (−1.2, 1) it takes 20 iterations where the plain
     :math:`\operatorname{diag}(J^\top J)` takes 33, but from far starts such as (100, −100) both
     crawl, 123 and 88 iterations, where ``"levenberg"`` takes 8 and scipy's MINPACK ``lm`` 4
-    evaluations). The damping is invariant to the units of the parameters, and a parameter with a zero Jacobian column gets
-    a tiny positive damping and a zero step. ``"levenberg"`` uses :math:`D = I`. Where the
+    evaluations). The damping is invariant to the units of the parameters, and a parameter with a
+    zero Jacobian column gets a tiny positive damping and a zero step. ``"levenberg"`` uses
+    :math:`D = I`. Where the
     Cholesky factorisation of :math:`H + \lambda D` fails, that element's step is computed with the
     pseudo-inverse (:func:`torch.linalg.pinv`, hermitian) instead and judged by its gain ratio like
     any other step; a bad step is rejected and raises the damping. No element can crash the batch
@@ -356,8 +357,8 @@ def levenberg_marquardt(
     if chunk_size is not None:
         chunk_size = check_integer(chunk_size, "chunk_size", minimum=1)
     active_subset, verbose = check_flag(active_subset, "active_subset"), check_flag(verbose, "verbose")
-    if isinstance(damping, Tensor) and damping.dim() == 0:
-        damping = check_nonnegative(damping, "damping")
+    if isinstance(damping, Tensor) and damping.dim() == 0:  # checked by _check_options as a number
+        damping = float(damping)
     if jacobian_dtype is not None and not (isinstance(jacobian_dtype, torch.dtype) and jacobian_dtype.is_floating_point):
         raise ValueError(f"jacobian_dtype: expected a floating torch.dtype or None, got {jacobian_dtype!r}")
     with torch.no_grad():
