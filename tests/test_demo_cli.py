@@ -469,7 +469,34 @@ def test_train_help_shows_the_defaults_of_a_new_run(capsys):
                           ("log-every", "log_every"), ("depth", "depth")):
         assert re.search(rf"--{option} \S+ [^-]*default {re.escape(str(getattr(config, field)))}\b", text), option
     assert "--max-minutes MAX_MINUTES stop with a checkpoint after this wall time; default: no limit" in text
-    assert "keeps the checkpoint's settings for the options the command leaves out" in text
+    assert ("takes the network's shape and the optimisation and loss settings (--base-channels, --depth, --lr, "
+            "--warmup-steps, --min-lr-ratio, --weight-decay, --ema-decay, --landmark-weight, --landmark-peak-weight, "
+            "--foreground-weight, --sigma, --precision) from the checkpoint unless the command gives them; the other "
+            "options apply as given") in text
+
+
+def test_a_resume_takes_the_network_shape_from_the_checkpoint(tmp_path, monkeypatch, capsys):
+    """Resuming a run of --base-channels 4 without repeating it failed: "--base-channels: 16 differs from
+    the checkpoint's 4" (the default), though the help says a resume keeps the checkpoint's settings."""
+    import facenormals.training as training
+    from facenormals.training import TrainSummary, train
+    from facenormals.training.config import TrainConfig
+
+    from tests.training.conftest import TinyHeads
+
+    first = TrainConfig(data="unused", out=str(tmp_path / "run"), steps=1, batch_size=2, workers=0, device="cpu",
+                        precision="fp32", base_channels=4, depth=2)
+    train(first, TinyHeads(4), progress=False)
+    seen = {}
+
+    def resumed(config, progress=True):
+        seen.update(base_channels=config.base_channels, depth=config.depth, steps=config.steps)
+        return TrainSummary(step=config.steps, samples_seen=0, finished=True, stopped_by="steps", seconds=0.0,
+                            metrics=None, checkpoint=tmp_path / "run" / "last.pt")
+
+    monkeypatch.setattr(training, "train", resumed)
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--steps", "3", "--quiet"]) == 0
+    assert seen == {"base_channels": 4, "depth": 2, "steps": 3}
 
 
 def test_train_names_the_option_that_differs_from_the_checkpoint(tmp_path, monkeypatch, capsys):

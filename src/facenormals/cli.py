@@ -6,6 +6,7 @@ import argparse
 import math
 import os
 import sys
+import textwrap
 from pathlib import Path
 from typing import Sequence
 
@@ -204,10 +205,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     last = Path(args.out) / "last.pt"
     if last.is_file():  # a resume keeps the checkpoint's training settings unless the command gives them
         from facenormals.training import load_checkpoint
-        from facenormals.training.loop import RESUMED_SETTINGS
+        from facenormals.training.loop import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS
 
         stored = load_checkpoint(last)["config"]
-        values.update({key: stored[key] for key in RESUMED_SETTINGS if key not in values and key in stored})
+        values.update({key: stored[key] for key in (*ARCHITECTURE_SETTINGS, *RESUMED_SETTINGS)
+                       if key not in values and key in stored})
     try:
         config = TrainConfig(**values)
     except ValueError as error:  # the config names its fields; name the command's options where they came from
@@ -333,6 +335,17 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+class _OptionsKeptWhole(argparse.HelpFormatter):
+    """Help text wrapped between words only: argparse's default breaks "--weight-decay" at its hyphens."""
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        return textwrap.fill(" ".join(text.split()), width, initial_indent=indent, subsequent_indent=indent,
+                             break_on_hyphens=False)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="facenormals", description="Reconstruct 3D heads from photos with predicted normals and landmarks.",
@@ -394,16 +407,20 @@ def build_parser() -> argparse.ArgumentParser:
                           "write a box with a negative X as --box=-20,30,150,150")
     rec.set_defaults(func=_cmd_reconstruct)
 
-    train = sub.add_parser("train", help="train the normal + landmark network on synthetic data (resumes from OUT/last.pt)",
+    from facenormals.training.config import TrainConfig
+    from facenormals.training.loop import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS
+
+    resumed = ["--" + key.replace("_", "-") for key in (*ARCHITECTURE_SETTINGS, *RESUMED_SETTINGS)]
+    train = sub.add_parser("train", formatter_class=_OptionsKeptWhole, help="train the normal + landmark network on synthetic data (resumes from OUT/last.pt)",
                            description="Single process: `facenormals train ...`; several GPUs or machines: "
                                        "`torchrun --nproc-per-node N -m facenormals.cli train ...` (DDP). A run "
-                                       "that resumes OUT/last.pt keeps the checkpoint's settings for the options "
-                                       "the command leaves out; the defaults below are those of a new run.")
+                                       "that resumes OUT/last.pt takes the network's shape and the optimisation "
+                                       f"and loss settings ({', '.join(resumed)}) from the checkpoint unless the "
+                                       "command gives them; the other options apply as given. The defaults below "
+                                       "are those of a new run.")
     train.add_argument("--data", required=True, help="training dataset folder (facenormals synth)")
     train.add_argument("--out", required=True, help="run folder: last.pt, log.csv, eval.csv")
     train.add_argument("--holdout", default=None, help="held-out dataset folder scored during training")
-    from facenormals.training.config import TrainConfig
-
     train_defaults = TrainConfig.__dataclass_fields__
     for name, kind, text in (
         ("steps", int, "optimiser steps of the whole run"), ("batch-size", int, "images per step and process"),

@@ -159,6 +159,9 @@ def _last_logged_step(path: Path) -> int | None:
 #: takes them from the checkpoint unless its command line gives them.
 RESUMED_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
                     "landmark_peak_weight", "foreground_weight", "sigma", "precision")
+#: The network's shape: a resume must keep it (another is refused), so ``facenormals train`` takes it
+#: from the checkpoint too unless its command line gives it.
+ARCHITECTURE_SETTINGS = ("base_channels", "depth")
 
 
 def _check_holdout_is_not_training_data(dataset: Dataset, holdout: str) -> None:
@@ -327,7 +330,7 @@ def _train(config: TrainConfig, dataset: Dataset | None, holdout: Dataset | None
             stale.unlink(missing_ok=True)
     if last.exists():
         state = load_checkpoint(last, map_location=ctx.device)
-        for key in ("base_channels", "depth"):
+        for key in ARCHITECTURE_SETTINGS:
             if state["config"][key] != getattr(config, key):
                 raise ValueError(f"config.{key}: {getattr(config, key)} differs from the checkpoint's "
                                  f"{state['config'][key]} in {last}; use another --out to start afresh")
