@@ -233,6 +233,29 @@ def test_a_sloped_surface_does_not_hide_its_own_vertices_at_coarse_resolution():
     assert not bool(behind[surrounded].any())
 
 
+def test_a_sloped_surface_at_its_silhouette_completes_the_plane_from_three_corners():
+    """Regression: where one of the four centres around a vertex was background, the nearest pixel's
+    depth was read, several mm off on a steep plane: 56 of 139 such vertices of this plane hid behind
+    the plane itself, and 34 points 5 mm behind it counted as seen. The plane through the three
+    other centres is exact."""
+    plane, faces = _grid(41, 50.0)
+    R = euler_to_rotation_matrix(torch.tensor([[0.0, math.radians(20), math.radians(60)]], dtype=torch.float64))
+    R = R @ euler_to_rotation_matrix(torch.tensor([[math.radians(30), 0.0, 0.0]], dtype=torch.float64))
+    t = torch.tensor([[0.0, 0.0, 500.0]], dtype=torch.float64) @ R[0]
+    K = torch.tensor([[100.0, 15.5, 15.5]], dtype=torch.float64)
+    pixels, depth = project_points(plane[None], R, t, K)
+    zbuffer = rasterize_depth(pixels, depth, faces, (32, 32))
+    u0, v0 = pixels[0, :, 0].floor().long(), pixels[0, :, 1].floor().long()
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 <= 30) & (v0 <= 30)
+    u0, v0 = u0.clamp(0, 30), v0.clamp(0, 30)
+    fg = torch.isfinite(zbuffer[0])
+    corners = fg[v0, u0].int() + fg[v0, u0 + 1].int() + fg[v0 + 1, u0].int() + fg[v0 + 1, u0 + 1].int()
+    three = inside & (corners == 3)
+    assert int(three.sum()) > 100
+    assert bool(unoccluded_points(pixels, depth, zbuffer, tolerance=1e-6)[0][three].all())
+    assert not bool(unoccluded_points(pixels, depth + 5.0, zbuffer, tolerance=1e-6)[0][three].any())
+
+
 def test_splat_zbuffer_refuses_a_nan_depth_at_a_finite_pixel():
     """Such a point was dropped from the z-buffer silently (unoccluded_points refuses it); a NaN pixel
     projects nowhere and stays allowed."""

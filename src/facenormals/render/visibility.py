@@ -92,23 +92,33 @@ def _flat_index(u: Tensor, v: Tensor, height: int, width: int) -> Tensor:
 def _surface_depth(pixels: Tensor, nearest_u: Tensor, nearest_v: Tensor, zbuffer: Tensor) -> Tensor:
     """The z-buffer's depth ``(B, N)`` at sub-pixel positions: ``1/z`` interpolated bilinearly between
     the four pixel centres around each point (exact on a plane, whose ``1/z`` is affine in the
-    pixels), or the depth at the nearest pixel ``(nearest_u, nearest_v)`` (:func:`_nearest_pixel`)
-    where one of the four is background or outside the image. Points that project nowhere (NaN)
-    read the pixel ``(-1, -1)``, clamped (they are outside anyway)."""
+    pixels). Where one of the four is background or outside the image, the plane through the other
+    three stands in for it (``c_k = c_i + c_j - c_opposite``), as exact on a plane; where more are
+    missing, or that plane gives no positive ``1/z`` at the point, the depth at the nearest pixel
+    ``(nearest_u, nearest_v)`` (:func:`_nearest_pixel`). Points that project nowhere (NaN) read the
+    pixel ``(-1, -1)``, clamped (they are outside anyway)."""
     batch, height, width = zbuffer.shape
     work = torch.promote_types(zbuffer.dtype, torch.float32)
     flat = zbuffer.to(work).reshape(batch, height * width)
     uv = pixels.to(work).nan_to_num(nan=-1.0)
     u0, v0 = torch.floor(uv[..., 0]), torch.floor(uv[..., 1])
     fu, fv = uv[..., 0] - u0, uv[..., 1] - v0
-    inverse = torch.zeros_like(fu)
-    interior = (u0 >= 0) & (u0 + 1 <= width - 1) & (v0 >= 0) & (v0 + 1 <= height - 1)
-    for du, dv, weight in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+    inverses, valid = [], []
+    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1)):
         corner = torch.gather(flat, 1, _flat_index(u0 + du, v0 + dv, height, width))
-        interior &= torch.isfinite(corner)
-        inverse = inverse + weight / corner
+        ok = (u0 + du >= 0) & (u0 + du <= width - 1) & (v0 + dv >= 0) & (v0 + dv <= height - 1) & torch.isfinite(corner)
+        valid.append(ok)
+        inverses.append(torch.where(ok, 1.0 / corner, torch.zeros((), dtype=work, device=corner.device)))
+    inverse, valid = torch.stack(inverses, -1), torch.stack(valid, -1)  # (B, N, 4), corners 00, 10, 01, 11
+    count = valid.sum(-1)
+    # a missing corner k from the others: the sum of its two neighbours minus its opposite (3 - k)
+    completed = inverse.sum(-1, keepdim=True) - 2.0 * inverse.flip(-1)
+    inverse = torch.where(valid, inverse, completed)
+    weights = torch.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], -1)
+    at_point = (weights * inverse).sum(-1)
+    use = (count == 4) | ((count == 3) & (at_point > 0))
     nearest = torch.gather(flat, 1, _flat_index(nearest_u, nearest_v, height, width))
-    return torch.where(interior, 1.0 / inverse, nearest)
+    return torch.where(use, 1.0 / at_point, nearest)
 
 
 @torch.no_grad()
@@ -124,8 +134,10 @@ def unoccluded_points(pixels: Tensor, depth: Tensor, zbuffer: Tensor, tolerance:
     The z-buffer is read at each point's sub-pixel position: its inverse depth is interpolated
     bilinearly between the four pixel centres around the point, which is exact on a plane (whose
     :math:`1/z` is affine in the pixel coordinates), so a sloped surface does not hide its own
-    vertices however coarse the pixels; where one of the four centres is background or outside the
-    image, the nearest pixel's depth is used.
+    vertices however coarse the pixels. Where one of the four centres is background or outside the
+    image, the plane through the other three stands in for it, as exact on a plane; where two or
+    more are, the nearest pixel's depth is used (within a pixel of a silhouette, the ``tolerance``
+    must then cover the surface's slope over up to half a pixel).
 
     Args:
         pixels: projected points ``(u, v)``.
