@@ -14,6 +14,19 @@ def test_finds_the_astronaut_face():
     assert 205 < cx < 240 and 100 < cy < 135 and 70 < faces[0].width < 130
 
 
+def test_a_small_face_in_a_large_photo_is_found_by_the_finer_searches():
+    """Regression: the photo was searched at 480 px for faces of at least 0.08 of its shorter side,
+    so a 105-px face in a 2400 x 1800 photo (a person a few metres away) was "no face found"."""
+    skdata = pytest.importorskip("skimage.data")
+    canvas = np.full((1800, 2400, 3), 128, np.uint8)
+    canvas[1000:1512, 1500:2012] = skdata.astronaut()
+    assert detect_faces(canvas, retry_sides=()) == []
+    faces = detect_faces(canvas)
+    assert faces, "no face found"
+    cx, cy = faces[0].center
+    assert 1705 < cx < 1740 and 1100 < cy < 1135 and 70 < faces[0].width < 130
+
+
 def test_no_face_in_a_flat_image_or_a_gradient():
     assert detect_faces(np.full((200, 300, 3), 128, np.uint8)) == []
     ramp = np.tile(np.linspace(0, 255, 256).astype(np.uint8), (256, 1))
@@ -120,7 +133,7 @@ def test_slivers_have_no_face_and_do_not_crash():
 
 @pytest.mark.parametrize("name,value", [("max_side", 0), ("max_side", -5), ("max_side", 23.5), ("min_face", 2.0),
                                         ("min_face", float("nan")), ("min_face", 0.0), ("min_hits", 0),
-                                        ("min_hits", True)])
+                                        ("min_hits", True), ("retry_sides", 960), ("retry_sides", (960, 10))])
 def test_detector_options_are_checked(name, value):
     """A bad option used to return "no face" (max_side=0, min_face=2) or a message not naming it."""
     with pytest.raises(ValueError, match=name):

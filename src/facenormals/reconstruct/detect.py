@@ -88,17 +88,23 @@ def _group(hits: list[FaceBox], min_iou: float) -> list[FaceBox]:
     return sorted(merged, key=lambda b: (-b.hits, -b.width))
 
 
-def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08, min_hits: int = 1) -> list[FaceBox]:
+def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08, min_hits: int = 1,
+                 retry_sides: tuple[int, ...] = (960, 1920)) -> list[FaceBox]:
     """Find faces with the LBP cascade; the best candidate comes first.
 
     The image is searched at most ``max_side`` pixels on its longer side (boxes are returned in the
-    original pixels).
+    original pixels), for faces from ``min_face`` of its shorter side up. If that finds nothing in
+    a larger image, it is searched again at each of ``retry_sides`` (capped at its own size), for
+    the faces smaller than the search before could see, down to the cascade's 24-pixel window: a
+    face 100 pixels wide in a 2400 x 1800 photo is below the first search's 0.08 x 1800 = 144.
 
     Args:
         image: RGB or grey ``uint8`` image ``(H, W, 3)`` / ``(H, W)``.
         max_side: longer side of the searched copy.
         min_face: smallest face side searched, as a fraction of the shorter image side.
         min_hits: drop candidates with fewer overlapping cascade hits.
+        retry_sides: longer sides of the copies searched for smaller faces when nothing is found,
+            increasing; ``()`` searches once.
 
     Returns:
         Grouped detections, most hits (then largest) first; empty if none.
@@ -114,24 +120,39 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
     if min_face > 1:
         raise ValueError(f"min_face: expected a fraction of the shorter image side in (0, 1], got {min_face!r}")
     min_hits = check_integer(min_hits, "min_hits", minimum=1)
+    if not isinstance(retry_sides, (tuple, list)):
+        raise ValueError(f"retry_sides: expected a tuple of image sides, got {retry_sides!r}")
+    sides = [max_side] + [check_integer(s, "retry_sides", minimum=24) for s in retry_sides]
     if image.size == 0:
         return []  # no pixels, no face (as for a sliver below)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
     height, width = grey.shape
-    if max_side < max(height, width):
-        size = (max(1, round(width * max_side / max(height, width))), max(1, round(height * max_side / max(height, width))))
-        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
-    scale_x, scale_y = grey.shape[1] / width, grey.shape[0] / height  # the real ratios after rounding
-    side = min(grey.shape)
-    smallest = max(24, int(min_face * side))
-    if side < smallest:  # a sliver: no face of the detector's smallest size fits
-        return []
-    raw = _cascade().detect_multi_scale(img=grey, scale_factor=1.15, step_ratio=1,
-                                        min_size=(smallest, smallest), max_size=(side, side))
-    hits = [FaceBox(d["c"] / scale_x, d["r"] / scale_y, d["width"] / scale_x, d["height"] / scale_y) for d in raw]
-    return [b for b in _group(hits, 0.3) if b.hits >= min_hits]
+    seen_down_to = math.inf  # the smallest face side searched so far, original pixels
+    for long_side in sides:
+        long_side = min(long_side, max(height, width))
+        copy = grey
+        if long_side < max(height, width):
+            size = (max(1, round(width * long_side / max(height, width))),
+                    max(1, round(height * long_side / max(height, width))))
+            copy = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+        scale_x, scale_y = copy.shape[1] / width, copy.shape[0] / height  # the real ratios after rounding
+        side = min(copy.shape)
+        if math.isinf(seen_down_to):
+            smallest, largest = max(24, int(min_face * side)), side
+        else:
+            smallest, largest = 24, min(side, math.ceil(seen_down_to * max(scale_x, scale_y)))
+        if smallest > largest:  # a sliver, or nothing smaller than before at this size
+            continue
+        raw = _cascade().detect_multi_scale(img=copy, scale_factor=1.15, step_ratio=1,
+                                            min_size=(smallest, smallest), max_size=(largest, largest))
+        hits = [FaceBox(d["c"] / scale_x, d["r"] / scale_y, d["width"] / scale_x, d["height"] / scale_y) for d in raw]
+        faces = [b for b in _group(hits, 0.3) if b.hits >= min_hits]
+        if faces or long_side >= max(height, width):
+            return faces
+        seen_down_to = smallest / max(scale_x, scale_y)
+    return []
 
 
 def head_crop_box(face: FaceBox, scale: float = 1.9, shift: float = -0.12) -> tuple[float, float, float]:
