@@ -258,11 +258,14 @@ def test_a_rewrite_is_all_or_nothing_and_drops_stale_views(oracle, tmp_path):
     view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300),
                      path="photo.jpg")
     rec = Reconstruction([view], maps, fit, model)
-    for name in ("view1_overlay.png", "view1_normals.png", "view1_landmarks.png", "view1_notes.png"):
+    _earlier_run(tmp_path, 2)
+    for name in ("view1_overlay.png", "view1_normals.png", "view1_landmarks.png", "view1_notes.png",
+                 "view2_overlay.png"):
         (tmp_path / name).write_bytes(b"an earlier run with two photos")
     write_reconstruction(rec, tmp_path)
     assert not (tmp_path / "view1_overlay.png").exists() and not (tmp_path / "view1_landmarks.png").exists()
     assert (tmp_path / "view1_notes.png").exists()  # not one of ours: kept
+    assert (tmp_path / "view2_overlay.png").exists()  # not in the earlier run's params.json: not ours, kept
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     (tmp_path / "params.json").unlink()
     (tmp_path / "params.json").mkdir()  # the last file cannot be written: nothing may change
@@ -272,6 +275,47 @@ def test_a_rewrite_is_all_or_nothing_and_drops_stale_views(oracle, tmp_path):
         write_reconstruction(rec, tmp_path)
     assert (tmp_path / "head.ply").read_bytes() == before["head.ply"]
     assert not list(tmp_path.glob(".*tmp*"))
+
+
+def _earlier_run(folder, views: int) -> None:
+    """The ``params.json`` of an earlier run with ``views`` photos (all that removing its views reads)."""
+    (folder / "params.json").write_text(json.dumps({"format": "facenormals-reconstruction", "version": 1,
+                                                    "views": [{} for _ in range(views)]}))
+
+
+def test_removing_an_earlier_runs_views_is_part_of_the_all_or_nothing_commit(oracle, tmp_path, monkeypatch):
+    """Regression: the earlier run's extra views were removed after the new files were in place, so
+    Ctrl-C there left the new params.json (1 view) beside old view pictures, and a file that merely
+    looked like one (a user's view5_overlay.png) was deleted. Now only the views the earlier
+    params.json lists are removed, in the commit: interrupted, the folder keeps the old set."""
+    import os
+
+    model, views, order = oracle
+    net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
+    maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
+                                  mirror=False)
+    view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300))
+    rec = Reconstruction([view], maps, fit, model)
+    _earlier_run(tmp_path, 3)
+    for name in ("view1_overlay.png", "view2_normals.png", "view5_overlay.png"):
+        (tmp_path / name).write_bytes(b"an earlier run's")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real = os.replace
+
+    def interrupted(src, dst):
+        if str(src).endswith("view2_normals.png"):
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_reconstruction(rec, tmp_path)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    monkeypatch.setattr(os, "replace", real)
+    write_reconstruction(rec, tmp_path)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert "view1_overlay.png" not in left and "view2_normals.png" not in left and "view5_overlay.png" in left
+    assert json.loads((tmp_path / "params.json").read_text())["views"][0]["image_size"] == [400, 300]
 
 
 def test_photo_view_maps_crop_pixels_to_image_pixels():
@@ -709,6 +753,7 @@ def test_stale_views_are_removed_but_never_an_input(oracle, tmp_path):
                                   mirror=False)
     photo = tmp_path / "view1_overlay.png"
     photo.write_bytes(b"this run's photo")
+    _earlier_run(tmp_path, 2)
     (tmp_path / "view1_normals.png").write_bytes(b"an earlier run with two photos")
     view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300),
                      path=str(photo))
@@ -716,33 +761,36 @@ def test_stale_views_are_removed_but_never_an_input(oracle, tmp_path):
     assert not (tmp_path / "view1_normals.png").exists() and photo.read_bytes() == b"this run's photo"
 
 
-def test_a_stale_view_name_that_cannot_be_removed_is_a_warning_not_a_failed_run(oracle, tmp_path, monkeypatch):
-    """A folder named like an earlier run's view picture: every new file was in place, but the
-    removal after them raised IsADirectoryError and the CLI reported the run as failed."""
-    from pathlib import Path
+def test_a_stale_view_that_cannot_be_moved_aside_fails_the_run_and_changes_nothing(oracle, tmp_path, monkeypatch):
+    """A folder named like an earlier run's view picture is not one: left alone, the run succeeds.
+    A picture the commit cannot move aside fails the run, naming it, with the folder as it was
+    (it had been a warning after the new files were in place, beside the old picture)."""
+    import os
 
     model, views, order = oracle
     net = OracleNet(views.normal_maps[0][1:2], views.landmarks[0][1:2, order])
     maps, fit = reconstruct_views(torch.zeros(1, 3, 128, 128), net, model, focal=float(views.intrinsics[0, 0, 0]),
                                   mirror=False)
+    _earlier_run(tmp_path, 4)
     (tmp_path / "view3_overlay.png").mkdir()
     view = PhotoView(crop=np.full((128, 128, 3), 100, np.uint8), box=(40.0, 20.0, 256.0), image_size=(400, 300))
     written = write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
     assert {p.name for p in written} >= {"head.ply", "head.obj", "params.json", "view0_overlay.png"}
     assert (tmp_path / "view3_overlay.png").is_dir()
+    _earlier_run(tmp_path, 4)
     (tmp_path / "view2_normals.png").write_bytes(b"an earlier run's")
-    real = Path.unlink
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    real = os.replace
 
-    def refuse(self, missing_ok=False):
-        if self.name == "view2_normals.png":
-            raise PermissionError(13, "Permission denied")
-        return real(self, missing_ok=missing_ok)
+    def refuse(src, dst):
+        if str(src).endswith("view2_normals.png"):
+            raise PermissionError(13, "Permission denied", str(src))
+        return real(src, dst)
 
-    monkeypatch.setattr(Path, "unlink", refuse)
-    with pytest.warns(RuntimeWarning, match=r"view2_normals.png: an earlier run's picture .* could not be removed "
-                                            r"\(Permission denied\)"):
-        written = write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
-    assert (tmp_path / "head.ply") in written
+    monkeypatch.setattr(os, "replace", refuse)
+    with pytest.raises(PermissionError, match="view2_normals.png"):
+        write_reconstruction(Reconstruction([view], maps, fit, model), tmp_path)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
 
 
 def test_empty_output_folder_and_paths_of_the_wrong_type_are_named(tmp_path, monkeypatch):

@@ -109,17 +109,17 @@ def _sync_folder(folder: Path) -> None:
         pass
 
 
-def publish_together(pairs: list[tuple[Path, Path]], durable: bool = True) -> list[Path]:
-    """Rename finished temporaries over their targets all together or not at all.
+def publish_together(pairs: list[tuple[Path | None, Path]], durable: bool = True) -> list[Path]:
+    """Rename finished temporaries over their targets, and remove targets, all together or not at all.
 
     Every temporary is flushed to disk first (where a full disk or an I/O error usually shows); then
     each existing target is moved to a backup name and its temporary renamed into place. An error or
-    Ctrl-C during the renames puts back every target already replaced (and removes those that are
-    new), so the folder keeps its old set of files, never a mix of old and new ones.
+    Ctrl-C during the renames puts back every target already replaced or removed (and removes those
+    that are new), so the folder keeps its old set of files, never a mix of old and new ones.
 
     Args:
         pairs: ``(temporary, target)`` pairs, each temporary in its target's folder
-            (:func:`temporary_beside`).
+            (:func:`temporary_beside`); a temporary ``None`` removes its target (if it exists).
         durable: as :func:`publish`.
 
     Returns:
@@ -135,26 +135,28 @@ def publish_together(pairs: list[tuple[Path, Path]], durable: bool = True) -> li
         >>> [p.name for p in publish_together(pairs)], (folder / "a.txt").read_text()
         (['a.txt', 'b.txt'], 'new a')
     """
-    pairs = [(Path(t), Path(p)) for t, p in pairs]
+    pairs = [(None if t is None else Path(t), Path(p)) for t, p in pairs]
     umask = _current_umask()
     for temporary, _ in pairs:
-        _finish(temporary, umask, durable)
+        if temporary is not None:
+            _finish(temporary, umask, durable)
     done: list[tuple[Path, Path | None]] = []  # (target, its backup or None for a new file)
     try:
         for temporary, path in pairs:
             backup = None
-            if path.exists():
+            if os.path.lexists(path):  # a symbolic link too, even a broken one: it is put back as it was
                 backup = temporary_beside(path)
                 try:
                     os.replace(path, backup)
                 except BaseException:  # e.g. Ctrl-C, which may arrive after the rename
-                    if path.exists():
+                    if os.path.lexists(path):
                         backup.unlink(missing_ok=True)
                     else:
                         os.replace(backup, path)
                     raise
             done.append((path, backup))
-            os.replace(temporary, path)
+            if temporary is not None:
+                os.replace(temporary, path)
     except BaseException:
         for path, backup in reversed(done):
             if backup is not None:
@@ -168,7 +170,7 @@ def publish_together(pairs: list[tuple[Path, Path]], durable: bool = True) -> li
     if durable:
         for folder in dict.fromkeys(path.parent for _, path in pairs):
             _sync_folder(folder)
-    return [path for _, path in pairs]
+    return [path for temporary, path in pairs if temporary is not None]
 
 
 class StagedFiles:
@@ -192,7 +194,7 @@ class StagedFiles:
     """
 
     def __init__(self) -> None:
-        self.files: list[tuple[Path, Path]] = []
+        self.files: list[tuple[Path | None, Path]] = []
 
     def write(self, path: Path, write: Callable[[Path], object]) -> Path:
         """Call ``write(temporary)`` for ``path``'s content; ``path`` is published by :meth:`commit`."""
@@ -203,8 +205,13 @@ class StagedFiles:
         write(part)
         return path
 
+    def remove(self, path: Path) -> None:
+        """Remove ``path`` (if it exists) in :meth:`commit`, together with publishing the written files."""
+        self.files.append((None, path))
+
     def commit(self) -> list[Path]:
-        """Publish every written file, all together or none (:func:`publish_together`)."""
+        """Publish every written file and make every removal, all together or none
+        (:func:`publish_together`); returns the written files."""
         done = publish_together(self.files)
         self.files = []
         return done
@@ -212,7 +219,8 @@ class StagedFiles:
     def discard(self) -> None:
         """Remove the temporaries of the files not committed."""
         for tmp, _ in self.files:
-            tmp.unlink(missing_ok=True)
+            if tmp is not None:
+                tmp.unlink(missing_ok=True)
         self.files = []
 
 

@@ -468,7 +468,9 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
 
     Every file is written to a unique temporary name first and all are renamed into place together
     once all are written, so an interrupted or failed run never leaves a half-written file nor a mix
-    of old and new files; view pictures of an earlier run with more photos are removed.
+    of old and new files. The view pictures of an earlier run with more photos (those its
+    ``params.json`` lists beyond this run's views) are removed in the same step; other files are
+    left alone.
     """
     if not isinstance(rec, Reconstruction):
         raise ValueError(f"rec: expected a Reconstruction, got {type(rec).__name__}")
@@ -477,21 +479,29 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
     staged = _Staged()
     try:
         _stage_reconstruction(rec, out, staged)
-        written = staged.commit()
+        # an earlier run with more photos left views this one does not have: they would not match params.json
+        inputs = {Path(view.path).resolve() for view in rec.views if view.path is not None}
+        for v in range(len(rec.views), _written_views(out / "params.json")):
+            for kind in ("overlay", "normals", "landmarks"):
+                stale = out / f"view{v}_{kind}.png"
+                if (stale.is_file() or stale.is_symlink()) and stale.resolve() not in inputs:
+                    staged.remove(stale)
+        return staged.commit()
     finally:
         staged.discard()
-    # an earlier run with more photos left views this one does not have: they would not match params.json
-    inputs = {Path(view.path).resolve() for view in rec.views if view.path is not None}
-    for stale in out.glob("view*_*.png"):
-        match = _VIEW_PICTURE.fullmatch(stale.name)
-        if (match and int(match.group(1)) >= len(rec.views) and stale.resolve() not in inputs
-                and (stale.is_file() or stale.is_symlink())):
-            try:
-                stale.unlink(missing_ok=True)
-            except OSError as error:  # the new files are in place: a leftover is worth a warning, not a failure
-                warnings.warn(f"{stale}: an earlier run's picture of a view this run does not have could not be "
-                              f"removed ({error.strerror or error})", RuntimeWarning, stacklevel=2)
-    return written
+
+
+def _written_views(params: Path) -> int:
+    """The number of views in an earlier run's ``params.json``; 0 if there is none or it is not one."""
+    try:
+        with open(params, encoding="utf-8") as handle:
+            earlier = json.load(handle)
+    except (OSError, ValueError):
+        return 0
+    if not isinstance(earlier, dict) or earlier.get("format") != "facenormals-reconstruction":
+        return 0
+    views = earlier.get("views")
+    return len(views) if isinstance(views, list) else 0
 
 
 def _stage_reconstruction(rec: Reconstruction, out: Path, staged: _Staged) -> None:
