@@ -207,7 +207,8 @@ def test_intact_photos_give_the_same_pixels_as_with_cv2_imread(tmp_path):
     cv2.imwrite(str(tmp_path / "colour.png"), colour)
     cv2.imwrite(str(tmp_path / "grey.png"), colour[..., 0])
     cv2.imwrite(str(tmp_path / "alpha.png"), np.dstack([colour, colour[..., :1]]))
-    cv2.imwrite(str(tmp_path / "deep.png"), (rng.random((40, 50, 3)) * 65535).astype(np.uint16))
+    deep = (rng.random((40, 50, 3)) * 65535).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "deep.png"), deep)
     cv2.imwrite(str(tmp_path / "large.jpeg"), cv2.resize(colour, (900, 700)))
     (tmp_path / "photo.jpg").write_bytes(_jpeg(2))
     (tmp_path / "rotated.JPG").write_bytes(_with_exif_orientation(_jpeg(3), 6))
@@ -216,6 +217,8 @@ def test_intact_photos_give_the_same_pixels_as_with_cv2_imread(tmp_path):
     assert library.sources == [str(p) for p in paths]
     for path, image in zip(paths, library.images):
         before = backgrounds._to_rgb_uint8(cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB))
+        if path.name == "deep.png":  # 16 bits are scaled by 255 / 65535 and rounded, not shifted by 8 as by cv2
+            before = np.round(deep[..., ::-1] * (255 / 65535)).astype(np.uint8)
         assert image.dtype == np.uint8 and np.array_equal(image, before), path.name
     assert library.images[paths.index(tmp_path / "rotated.JPG")].shape == (128, 96, 3)  # turned upright
     rgb = library.images[paths.index(tmp_path / "colour.png")]

@@ -39,6 +39,47 @@ def test_grey_rgba_and_16_bit_become_rgb_uint8(tmp_path):
     assert (read_image(tmp_path / "d.png") == 255).all()
 
 
+@pytest.mark.parametrize("bits", [10, 12, 14])
+def test_16_bit_images_holding_fewer_bits_are_scaled_by_their_depth(tmp_path, bits):
+    """Regression: 12-bit data in a 16-bit PNG was divided by 256 into a near-black image (at most
+    15 of 255), which the network and the pictures then saw."""
+    import cv2
+
+    eight = np.linspace(0, 255, 5 * 7 * 3).reshape(5, 7, 3).round().astype(np.uint8)
+    deep = np.round(eight.astype(np.float64) * ((1 << bits) - 1) / 255).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "deep.png"), deep)
+    assert np.abs(read_image(tmp_path / "deep.png").astype(int) - eight[..., ::-1]).max() <= 1
+
+
+def test_floating_point_tiffs_are_read_without_opencv_noise(tmp_path, capfd):
+    """Regression: a float32 TIFF was refused as 'not an image' after OpenCV's 'TIFFRGBAImageOK:
+    Sorry, can not handle images with 32-bit samples' on stderr."""
+    import cv2
+
+    eight = np.linspace(0, 255, 6 * 8 * 3).reshape(6, 8, 3).round().astype(np.uint8)
+    for name, scale in (("unit.tif", 1 / 255), ("bytes.tif", 1.0)):
+        assert cv2.imwrite(str(tmp_path / name), eight.astype(np.float32) * np.float32(scale))
+        assert np.abs(read_image(tmp_path / name).astype(int) - eight[..., ::-1]).max() <= 1
+    bad = eight.astype(np.float32)
+    bad[0, 0, 0] = np.nan
+    assert cv2.imwrite(str(tmp_path / "nan.tif"), bad)
+    with pytest.raises(ImageReadError, match=r"nan.tif: a floating-point image with NaN or infinite pixels"):
+        read_image(tmp_path / "nan.tif")
+    assert "WARN" not in capfd.readouterr().err
+
+
+def test_exif_orientation_is_applied_to_16_bit_images(tmp_path):
+    PIL = pytest.importorskip("PIL.Image")
+    grey = np.zeros((20, 40), np.uint16)
+    grey[:, :10] = 4095  # a bright band on the left, 12-bit data
+    img = PIL.fromarray(grey)
+    exif = img.getexif()
+    exif[0x0112] = 6
+    img.save(tmp_path / "deep.png", exif=exif.tobytes())
+    out = read_image(tmp_path / "deep.png")
+    assert out.shape == (40, 20, 3) and out[:5].mean() > 200 and out.mean() < 100
+
+
 def test_colour_order_is_rgb(tmp_path):
     import cv2
 

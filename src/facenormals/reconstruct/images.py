@@ -20,8 +20,12 @@ class ImageReadError(ValueError):
 def read_image(path: str | Path) -> np.ndarray:
     """Read a photo as RGB ``uint8`` ``(H, W, 3)``, rotated as its EXIF orientation says.
 
-    Grey images are replicated to three channels, an alpha channel is dropped and 16-bit images
-    are scaled to 8 bits (OpenCV's ``IMREAD_COLOR``, which also applies the EXIF orientation tag).
+    Grey images are replicated to three channels and an alpha channel is dropped (OpenCV's
+    ``IMREAD_COLOR``, which also applies the EXIF orientation tag). Deeper samples are scaled to 8
+    bits: 16-bit ones as holding 8-, 10-, 12-, 14- or 16-bit data, the least that holds the image's
+    largest value (scanners and cameras often store 10 or 12 bits in 16, which divided by 256 would
+    leave a black image); floating-point ones (e.g. a float TIFF) from ``[0, 1]``, or from
+    ``[0, 255]`` or their largest value where they exceed 1, and clipped below at 0.
 
     Raises:
         ImageReadError: naming ``path`` if it does not exist, is a folder or is not a decodable
@@ -60,7 +64,23 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
     if damage:
         raise ImageReadError(f"{path}: corrupt JPEG data ({damage[0]})")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)  # a third of the time of a reversed copy
+    return cv2.cvtColor(_eight_bits(image, path), cv2.COLOR_BGR2RGB)  # a third of the time of a reversed copy
+
+
+def _eight_bits(image: np.ndarray, path: Path) -> np.ndarray:
+    """A decoded image of any sample type as ``uint8``, scaled as :func:`read_image` says."""
+    if image.dtype == np.uint8:
+        return image
+    if image.dtype == np.uint16:
+        bits = next(b for b in (8, 10, 12, 14, 16) if int(image.max()) < 1 << b)
+        return np.round(image.astype(np.float32) * (255.0 / ((1 << bits) - 1))).astype(np.uint8)
+    if image.dtype.kind == "f":
+        if not np.isfinite(image.sum(dtype=np.float64)):
+            raise ImageReadError(f"{path}: a floating-point image with NaN or infinite pixels")
+        top = float(image.max())
+        scale = 255.0 if top <= 1.0 else 1.0 if top <= 255.0 else 255.0 / top
+        return np.round(np.clip(image * np.float32(scale), 0.0, 255.0)).astype(np.uint8)
+    raise ImageReadError(f"{path}: {image.dtype} samples are not supported (8- or 16-bit integers or floating point)")
 
 
 _JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG file", "Inconsistent progression sequence")
@@ -127,19 +147,19 @@ def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
     if not data.size:
         return None, []
     if data[: len(_JPEG_SIGNATURE)].tobytes() != _JPEG_SIGNATURE:
-        return cv2.imdecode(data, cv2.IMREAD_COLOR), []
+        return cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH), []
     data = _without_header_padding(data)
     if sys.stderr is None:  # Python started with file descriptor 2 closed: no warnings to read
-        return cv2.imdecode(data, cv2.IMREAD_COLOR), []
+        return cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH), []
     with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
         sys.stderr.flush()
         try:
             saved = os.dup(2)
         except OSError:  # no stderr to redirect (a daemon): decode without the check
-            return cv2.imdecode(data, cv2.IMREAD_COLOR), []
+            return cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH), []
         try:
             os.dup2(capture.fileno(), 2)
-            image = cv2.imdecode(data, cv2.IMREAD_COLOR)
+            image = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
         finally:
             os.dup2(saved, 2)
             os.close(saved)
