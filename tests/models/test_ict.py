@@ -498,3 +498,20 @@ def test_a_damaged_npy_header_in_the_archive_is_refused(ict_npz, tmp_path, monke
     monkeypatch.setenv("FACENORMALS_ICT", str(damaged))
     with pytest.raises(ModelFileError, match=match + "; replace it"):
         load_model("ict")
+
+
+def test_the_archive_is_not_looked_up_beside_the_working_directory(tmp_path, monkeypatch):
+    """Regression: ``shared/data`` beside the working directory was a candidate, so an installed
+    package fitted ICT-FaceKit or the built-in head depending on where a command ran."""
+    import facenormals.models.registry as registry
+
+    monkeypatch.setenv("FACENORMALS_HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("FACENORMALS_ICT", raising=False)
+    monkeypatch.setattr(registry, "__file__", str(tmp_path / "site" / "facenormals" / "models" / "registry.py"))
+    work = tmp_path / "work" / "project"
+    for base in (work, work.parent):
+        archive = base / "shared" / "data" / "ict_facekit" / "ict_face_head.npz"
+        archive.parent.mkdir(parents=True)
+        archive.write_bytes(b"found by the working directory")
+    monkeypatch.chdir(work)
+    assert find_ict_archive() is None

@@ -25,8 +25,9 @@ def cache_dir() -> Path:
 
 
 def find_ict_archive() -> Path | None:
-    """The ICT-FaceKit archive, looked up in ``$FACENORMALS_ICT``, the cache and ``shared/data``
-    beside the working directory or the repository; ``None`` if absent."""
+    """The ICT-FaceKit archive, looked up in ``$FACENORMALS_ICT``, the cache and, for a source
+    checkout, ``../shared/data`` beside the repository; ``None`` if absent. Not beside the working
+    directory: the model a command uses must not depend on where it is run."""
     candidates = []
     if os.environ.get("FACENORMALS_ICT"):
         named = Path(os.environ["FACENORMALS_ICT"])
@@ -36,10 +37,9 @@ def find_ict_archive() -> Path | None:
             raise ModelFileError(f"{named}: FACENORMALS_ICT names {what}; fix or unset it")
         candidates.append(named)
     candidates.append(cache_dir() / "ict" / ICT_ARCHIVE)
-    repo_root = Path(__file__).resolve().parents[3]
-    for base in (Path.cwd(), repo_root):
-        candidates.append(base.parent / "shared" / "data" / "ict_facekit" / ICT_ARCHIVE)
-        candidates.append(base / "shared" / "data" / "ict_facekit" / ICT_ARCHIVE)
+    repo_root = Path(__file__).resolve().parents[3]  # src/facenormals/models/registry.py in a checkout
+    if (repo_root / "pyproject.toml").is_file() and (repo_root / "src" / "facenormals").is_dir():
+        candidates.append(repo_root.parent / "shared" / "data" / "ict_facekit" / ICT_ARCHIVE)
     return next((c for c in candidates if c.is_file()), None)
 
 
