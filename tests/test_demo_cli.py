@@ -38,6 +38,39 @@ def test_cli_requires_a_command():
         main([])
 
 
+def test_version_is_the_installed_distributions(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"facenormals {version('facenormals')}"
+
+
+def test_the_command_starts_without_torch_and_ctrl_c_while_it_loads_is_one_line(monkeypatch, capsys):
+    """Regression: ``import facenormals`` imported torch (seconds), and the parser was built outside
+    the Ctrl-C handler, so Ctrl-C in a command's first ~2 s printed a 30-line traceback."""
+    import subprocess
+    import sys
+
+    import facenormals.cli as cli
+
+    probe = ("import sys, facenormals, facenormals.cli; loaded = 'torch' in sys.modules; "
+             "import facenormals as fn; print(loaded, fn.fitting.__name__, callable(fn.project_points), "
+             "hasattr(fn, 'no_such_op'), 'sample_bicubic' in dir(fn))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "facenormals.fitting", "True", "False", "True"]
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert main(["reconstruct", "photo.jpg"]) == 130
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == ["facenormals: interrupted (files already written are kept; rerun to "
+                                         "resume where that applies)"] and captured.out == ""
+
+
 def test_models_list_and_show(capsys):
     assert main(["models", "list"]) == 0
     out = capsys.readouterr().out

@@ -351,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="facenormals", description="Reconstruct 3D heads from photos with predicted normals and landmarks.",
         epilog="Errors print one line and exit 1 (set FACENORMALS_TRACEBACK=1 for the traceback); a mistyped "
                "command line prints its usage and exits 2; Ctrl-C exits 130.")
+    from facenormals import __version__
+
+    parser.add_argument("--version", action="version", version=f"facenormals {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="recover a random synthetic head from its normal map and landmarks")
     demo.add_argument("--model", default="auto", help="ict, builtin, auto (default) or a model file (.npz, .mat, .h5, "
@@ -450,25 +453,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
+    name = "facenormals"  # then "facenormals COMMAND", for the messages
+    try:  # building the parser imports torch (seconds): Ctrl-C then gets the same one line
+        args = build_parser().parse_args(argv)
+        name = f"facenormals {args.command}"
         return int(args.func(args))
     except KeyboardInterrupt:
-        print(f"facenormals {args.command}: interrupted (files already written are kept; rerun to resume "
-              "where that applies)", file=sys.stderr)
+        print(f"{name}: interrupted (files already written are kept; rerun to resume where that applies)",
+              file=sys.stderr)
         return 130
     except BrokenPipeError as error:
         if _stdout_is_broken():  # its reader went away (`facenormals models show X | head`): exit quietly
             return 141  # 128 + SIGPIPE, as a shell reports a command killed by it
         if os.environ.get("FACENORMALS_TRACEBACK", "") not in ("", "0"):
             raise
-        print(f"facenormals {args.command}: error: {error}", file=sys.stderr)
+        print(f"{name}: error: {error}", file=sys.stderr)
         return 1
     except (ValueError, OSError, RuntimeError, ArithmeticError) as error:
         if os.environ.get("FACENORMALS_TRACEBACK", "") not in ("", "0"):
             raise
-        print(f"facenormals {args.command}: error: {error}", file=sys.stderr)
+        print(f"{name}: error: {error}", file=sys.stderr)
         return 1
 
 
