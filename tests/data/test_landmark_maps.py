@@ -105,3 +105,15 @@ def test_eps_and_a_nan_threshold_are_checked():
         landmarks_from_maps(z, threshold=float("nan"))
     points, found = landmarks_from_maps(z, threshold=float("-inf"))  # -inf keeps every peak
     assert bool(found.all()) and bool(torch.isfinite(points).all())
+
+
+@pytest.mark.parametrize("dtype,tolerance", [(torch.float16, 0.003), (torch.bfloat16, 0.02)])
+def test_half_precision_maps_decode_to_float32_sub_pixel_points(dtype, tolerance):
+    """Regression: points came back in the maps' dtype, whose pixel grid is too coarse (bfloat16
+    spaces whole numbers 0.5 apart above 64): a half-precision network's landmarks lost up to 0.25 px."""
+    g = torch.Generator().manual_seed(0)
+    points = torch.rand(4, 24, 2, generator=g, dtype=torch.float64) * 120 + 4
+    maps = landmark_maps(points, None, (128, 128), sigma=1.5).to(dtype)
+    decoded, found = landmarks_from_maps(maps, threshold=torch.full((24,), 0.5, dtype=dtype))
+    assert decoded.dtype == torch.float32 and bool(found.all())
+    assert float((decoded.double() - points).abs().max()) < tolerance

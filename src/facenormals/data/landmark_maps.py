@@ -92,12 +92,17 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
 
     Args:
         maps: landmark maps.
-        threshold: smallest peak value that counts as a detection: one for all channels, or one
-            per channel :math:`(L,)`.
+        threshold: a peak counts as a detection where it is greater than this: one for all
+            channels, or one per channel :math:`(L,)`. The default suits exact maps (peaks of 1);
+            for a network's maps pass its calibrated thresholds,
+            :func:`facenormals.training.landmark_threshold` (0.55-0.825 for the shipped weights: with 0.1
+            their maps "find" most hidden landmarks too).
         eps: values are clamped to at least ``eps`` before the logarithm.
 
     Returns:
-        ``(points, found)``: ``(u, v)`` pixels (NaN where not found) and the detection mask.
+        ``(points, found)``: ``(u, v)`` pixels (NaN where not found), in the dtype of ``maps`` but
+        at least float32 (a half-precision pixel grid is too coarse for sub-pixel positions:
+        bfloat16 spaces whole numbers 0.5 apart above 64), and the detection mask.
 
     Shape:
         - maps: :math:`(B, L, H, W)`
@@ -121,6 +126,8 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
         check_shape(threshold, [l], "threshold")
     if bool(torch.isnan(threshold).any()):  # would find nothing, silently (-inf: everything is allowed)
         raise ValueError("threshold: expected numbers (or -inf to keep every peak), got NaN")
+    if maps.dtype in (torch.float16, torch.bfloat16):
+        return landmarks_from_maps(maps.float(), threshold, eps)
     flat = maps.reshape(b, l, h * w)
     peak, index = flat.max(-1)
     row, col = index // w, index % w
