@@ -619,6 +619,25 @@ def test_predict_maps_checks_its_crops():
         predict_maps(net, torch.rand(1, 3, 18, 18))
 
 
+def test_predict_maps_warns_on_crops_of_another_size_than_trained(recwarn):
+    """A 256-px crop of the same face ran without a word, its landmarks ~6 px off where the network
+    saw a face at twice its scale; an untrained network (no metadata) runs at any size."""
+    from facenormals.nn import NormalLandmarkUNet
+    from facenormals.reconstruct import predict_maps
+
+    net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
+    predict_maps(net, torch.rand(1, 3, 32, 32), mirror=False)
+    assert not recwarn.list
+    net.metadata = {"step": 10}
+    predict_maps(net, torch.rand(1, 3, 128, 128), mirror=False)
+    assert not recwarn.list
+    with pytest.warns(UserWarning, match=r"crops: 256x256 pixels, but the network was trained on 128x128 crops"):
+        predict_maps(net, torch.rand(1, 3, 256, 256), mirror=False)
+    net.metadata = {"image_size": 64}
+    with pytest.warns(UserWarning, match="trained on 64x64"):
+        predict_maps(net, torch.rand(1, 3, 128, 128), mirror=False)
+
+
 def test_reconstruct_views_takes_precomputed_maps(monkeypatch):
     """Maps given are used as they are (no second prediction); maps whose shapes do not fit the crops
     are refused, field by field."""
