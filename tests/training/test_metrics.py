@@ -283,3 +283,43 @@ def test_foreground_iou_against_numpy():
     expected = (truth & predicted).sum() / (truth | predicted).sum()
     assert 0.3 < expected < 0.99
     assert m.foreground_iou == pytest.approx(float(expected), abs=1e-9)
+
+
+def test_mirror_calibration_gives_each_left_right_pair_one_threshold(monkeypatch):
+    """Regression: mirror-averaged maps are mirror-symmetric, but each channel got its own threshold
+    (the shipped right_ear_lobe 0.675, left_ear_lobe 0.625), so 36 of 2,304 detections changed when
+    a photo was mirrored. Here a pair's channels separate at different heights: alone, they get
+    different thresholds; calibrated as mirror-averaged maps, one per pair."""
+    import facenormals.training.metrics as metrics
+    from facenormals.models.landmarks import LANDMARK_NAMES
+    from facenormals.nn import mirror_permutation
+
+    data = TinyHeads(8)
+    left = torch.tensor([name.startswith("left") for name in LANDMARK_NAMES])
+    hidden_peak, visible_peak = torch.where(left, 0.6, 0.2), torch.where(left, 0.8, 0.5)
+
+    class Peaks(nn.Module):
+        """Each channel's peak at the centre: its visible or its hidden height, by the sample's labels."""
+
+        def __init__(self):
+            super().__init__()
+            self.p = nn.Parameter(torch.zeros(()))
+
+        def forward(self, images):
+            visible = torch.stack([next(d["landmark_visible"] for d in data.items if torch.equal(d["image"], im))
+                                   for im in images])
+            z = torch.zeros(len(images), 24, 32, 32)
+            z[..., 16, 16] = torch.where(visible, visible_peak, hidden_peak)
+            return UNetOutput(torch.zeros(len(images), 3, 32, 32), z, torch.zeros(len(images), 1, 32, 32))
+
+    net = Peaks()
+    alone, _ = calibrate_landmark_threshold(net, data, mirror=False)
+    monkeypatch.setattr(metrics, "mirror_averaged", lambda net, images: net(images))  # maps as they are
+    pooled, _ = calibrate_landmark_threshold(net, data, mirror=True)
+    partner = mirror_permutation()
+    pairs = [(c, partner[c]) for c in range(24) if partner[c] > c]
+    assert len(pairs) == 9
+    assert any(alone[a] != alone[b] for a, b in pairs)
+    assert all(pooled[a] == pooled[b] for a, b in pairs)
+    unpaired = [c for c in range(24) if partner[c] == c]
+    assert [pooled[c] for c in unpaired] == [alone[c] for c in unpaired]

@@ -13,7 +13,8 @@ from facenormals.data.landmark_maps import landmarks_from_maps
 from facenormals.fitting.landmark_visibility import DEFAULT_FOCAL, drop_hidden_landmarks
 from facenormals.mesh.normals import _cross
 from facenormals.models import MorphableModel
-from facenormals.nn.mirror import mirror_averaged
+from facenormals.models.landmarks import LANDMARK_NAMES
+from facenormals.nn.mirror import mirror_averaged, mirror_permutation
 from facenormals.nn.pretrained import check_threshold, landmark_threshold
 from facenormals.nn.unet import NormalLandmarkUNet
 from facenormals.reconstruct.pipeline import landmark_channels
@@ -256,7 +257,9 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     calibrates the peaks of :func:`~facenormals.nn.mirror_averaged` predictions, as those use it.
     ``per_landmark`` chooses one threshold per landmark channel (the peaks of eye corners, ears and
     the nose differ: on 512 held-out images of the step-5,248 network, 77.4 % of the decisions were
-    right instead of 74.4 % with one common threshold), else one for all.
+    right instead of 74.4 % with one common threshold), else one for all; with ``mirror`` too, the
+    two channels of each left/right pair share theirs, chosen on their pooled peaks (the averaged
+    maps are mirror-symmetric, so a mirrored photo then gets the mirrored detections).
 
     Returns:
         ``(threshold, accuracy)``: the threshold (a list of one per channel with ``per_landmark``)
@@ -293,12 +296,18 @@ def calibrate_landmark_threshold(net: NormalLandmarkUNet, dataset: Dataset, batc
     peak, vis = torch.cat(peaks), torch.cat(visible)
     correct = torch.stack([((peak > t) == vis).float().mean(0) for t in candidates])  # (T, L)
 
-    def middle_of_best(score: Tensor) -> tuple[float, float]:
+    def middle_of_best(score: Tensor) -> int:
         # ties (e.g. a channel always visible in the data) take the middle of the best candidates
         best = torch.nonzero(score == score.max()).squeeze(1)
-        return float(candidates[best[len(best) // 2]]), float(score.max())
+        return int(best[len(best) // 2])
 
     if per_landmark:
-        chosen = [middle_of_best(correct[:, c]) for c in range(correct.shape[1])]
-        return [t for t, _ in chosen], sum(a for _, a in chosen) / len(chosen)
-    return middle_of_best(correct.mean(1))
+        # mirror-averaged maps are mirror-symmetric: a left/right pair shares one threshold, chosen on
+        # their pooled peaks, so that mirroring a photo mirrors its detections
+        partner = mirror_permutation() if mirror and correct.shape[1] == len(LANDMARK_NAMES) else None
+        chosen = [middle_of_best(correct[:, c] if partner is None else correct[:, c] + correct[:, partner[c]])
+                  for c in range(correct.shape[1])]
+        accuracy = sum(float(correct[i, c]) for c, i in enumerate(chosen)) / len(chosen)
+        return [float(candidates[i]) for i in chosen], accuracy
+    best = middle_of_best(correct.mean(1))
+    return float(candidates[best]), float(correct[best].mean())
