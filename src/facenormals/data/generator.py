@@ -387,8 +387,8 @@ class SyntheticHeadGenerator:
     def _expressions(self, rng: np.random.Generator) -> np.ndarray:
         """Expression weights ``(E,)`` float32 in ``[0, 1]``: with ``expression_probability``, 1 to
         ``max_expressions`` blendshapes with weights ``uniform(0.15, 1) ** 0.8`` (in ``[0.219, 1]``), each
-        copied to its _L/_R partner with probability 0.6 (times 0.8–1.2), plus ``jawOpen`` in
-        ``[0.1, 0.8]`` with probability 0.25; ``mouthClose <= jawOpen``."""
+        copied to its _L/_R partner with probability 0.6 (times 0.8–1.2), then ``jawOpen`` at least
+        ``uniform(0.1, 0.8)`` with probability 0.25; ``mouthClose <= jawOpen``."""
         count = self.model.num_expressions
         weights = np.zeros(count, dtype=np.float64)
         if count == 0 or self.config.max_expressions == 0 or rng.random() >= self.config.expression_probability:
