@@ -21,6 +21,17 @@ def test_shipped_weights_are_small_and_load():
     torch.testing.assert_close(out.normals.norm(dim=1), torch.ones(2, 128, 128))
 
 
+def test_shipped_thresholds_are_mirror_symmetric():
+    """reconstruct decodes mirror-averaged maps, which are mirror-symmetric: with separate
+    thresholds for a left/right pair (ear lobes 0.675 and 0.625 before session 26), mirroring a
+    photo changed its detections."""
+    from facenormals.nn import mirror_permutation
+    from facenormals.training import landmark_threshold
+
+    threshold = landmark_threshold(load_weights())
+    assert threshold.shape == (24,) and torch.equal(threshold, threshold[mirror_permutation()])
+
+
 def test_shipped_network_finds_the_example_face():
     """On the bundled photo the network finds a head in the middle of the crop and most landmarks."""
     from pathlib import Path

@@ -95,7 +95,7 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
         threshold: a peak counts as a detection where it is greater than this: one for all
             channels, or one per channel :math:`(L,)`. The default suits exact maps (peaks of 1);
             for a network's maps pass its calibrated thresholds,
-            :func:`facenormals.training.landmark_threshold` (0.55-0.825 for the shipped weights: with 0.1
+            :func:`facenormals.training.landmark_threshold` (0.525-0.825 for the shipped weights: with 0.1
             their maps "find" most hidden landmarks too).
         eps: values are clamped to at least ``eps`` before the logarithm.
 
