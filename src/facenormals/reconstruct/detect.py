@@ -95,8 +95,10 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
     The image is searched at most ``max_side`` pixels on its longer side (boxes are returned in the
     original pixels), for faces from ``min_face`` of its shorter side up. If that finds nothing in
     a larger image, it is searched again at each of ``retry_sides`` (capped at its own size), for
-    the faces smaller than the search before could see, down to the cascade's 24-pixel window: a
-    face 100 pixels wide in a 2400 x 1800 photo is below the first search's 0.08 x 1800 = 144.
+    the faces smaller than the search before could see, down to the cascade's 24-pixel window, in
+    steps of 1.5 instead of 1 pixel: a face 100 pixels wide in a 2400 x 1800 photo is below the
+    first search's 0.08 x 1800 = 144. A large photo without a face takes longer to refuse (a
+    12-MP one ~2.5 s instead of 0.4 s).
 
     Args:
         image: RGB or grey ``uint8`` image ``(H, W, 3)`` / ``(H, W)``.
@@ -139,13 +141,16 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
             copy = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
         scale_x, scale_y = copy.shape[1] / width, copy.shape[0] / height  # the real ratios after rounding
         side = min(copy.shape)
-        if math.isinf(seen_down_to):
+        first = math.isinf(seen_down_to)
+        if first:
             smallest, largest = max(24, int(min_face * side)), side
         else:
             smallest, largest = 24, min(side, math.ceil(seen_down_to * max(scale_x, scale_y)))
         if smallest > largest:  # a sliver, or nothing smaller than before at this size
             continue
-        raw = _cascade().detect_multi_scale(img=copy, scale_factor=1.15, step_ratio=1,
+        # the retries step the window 1.5 px at the smallest scale instead of 1: 3x faster (a 12-MP photo
+        # without a face took 6.6 s to refuse, now ~2.5 s), and the small faces of the tests are still found
+        raw = _cascade().detect_multi_scale(img=copy, scale_factor=1.15, step_ratio=1 if first else 1.5,
                                             min_size=(smallest, smallest), max_size=(largest, largest))
         hits = [FaceBox(d["c"] / scale_x, d["r"] / scale_y, d["width"] / scale_x, d["height"] / scale_y) for d in raw]
         faces = [b for b in _group(hits, 0.3) if b.hits >= min_hits]
