@@ -28,8 +28,10 @@ def test_shipped_thresholds_are_mirror_symmetric():
     from facenormals.nn import mirror_permutation
     from facenormals.training import landmark_threshold
 
-    threshold = landmark_threshold(load_weights())
+    net = load_weights()
+    threshold = landmark_threshold(net)
     assert threshold.shape == (24,) and torch.equal(threshold, threshold[mirror_permutation()])
+    assert net.metadata["image_size"] == 128  # the crops predict_maps expects
 
 
 def test_shipped_network_finds_the_example_face():

@@ -628,7 +628,9 @@ def test_predict_maps_warns_on_crops_of_another_size_than_trained(recwarn):
     net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
     predict_maps(net, torch.rand(1, 3, 32, 32), mirror=False)
     assert not recwarn.list
-    net.metadata = {"step": 10}
+    net.metadata = {"step": 10}  # weights that do not say their training size: no guess
+    predict_maps(net, torch.rand(1, 3, 64, 64), mirror=False)
+    net.metadata = {"image_size": 128}
     predict_maps(net, torch.rand(1, 3, 128, 128), mirror=False)
     assert not recwarn.list
     with pytest.warns(UserWarning, match=r"crops: 256x256 pixels, but the network was trained on 128x128 crops"):

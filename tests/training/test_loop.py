@@ -85,6 +85,7 @@ def test_export_weights_round_trip(tmp_path):
     for key, value in net.state_dict().items():
         torch.testing.assert_close(value, ema[key].half().float())
     assert net.metadata["note"] == "test" and net.metadata["step"] == 2
+    assert net.metadata["image_size"] == 32  # TinyHeads' side: predict_maps warns on other crops
     calibrated = load_weights(export_weights(summary.checkpoint, tmp_path / "c.pt", calibration_data=TinyHeads(8)))
     thresholds = calibrated.metadata["landmark_threshold"]  # one per landmark channel
     assert len(thresholds) == 24 and all(0.05 <= t <= 0.95 for t in thresholds)

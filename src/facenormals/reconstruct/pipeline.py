@@ -153,10 +153,11 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
     With ``mirror`` the prediction is averaged with that of the mirrored crops
     (:func:`~facenormals.nn.mirror_averaged`: better maps for twice the network time).
     The network runs on its own device (e.g. CUDA) and in its own dtype; the maps come back on the
-    CPU, where the fit and the output files are made (the points in at least float32). Trained
-    weights (with metadata) warn on crops of another size than they were trained on
-    (``metadata["image_size"]``, else 128): the network is convolutional and runs, but a face at
-    another scale gives it maps it has not learnt.
+    CPU, where the fit and the output files are made (the points in at least float32). Weights
+    that record the side of their training images (``metadata["image_size"]``, written by
+    :func:`~facenormals.training.export_weights`; 128 for the shipped ones) warn on crops of
+    another size: the network is convolutional and runs, but a face at another scale gives it
+    maps it has not learnt.
 
     Example:
         >>> net = NormalLandmarkUNet(base_channels=4, depth=2).eval()
@@ -177,8 +178,8 @@ def predict_maps(net: NormalLandmarkUNet, crops: Tensor, threshold: float | None
                          f"channels, and this network predicts {net.num_landmarks}: pass mirror=False, or "
                          "mirror it yourself with facenormals.nn.mirror_averaged and its permutation")
     metadata = getattr(net, "metadata", None)
-    trained = metadata.get("image_size", 128) if isinstance(metadata, dict) and metadata else None
-    if trained is not None and crops.shape[-1] != trained:
+    trained = metadata.get("image_size") if isinstance(metadata, dict) else None
+    if isinstance(trained, int) and crops.shape[-1] != trained:
         warnings.warn(f"crops: {crops.shape[-1]}x{crops.shape[-1]} pixels, but the network was trained on "
                       f"{trained}x{trained} crops, and its maps at another scale are unreliable (crop to that size, "
                       f"e.g. facenormals.reconstruct.crop_square(image, box, size={trained}))", UserWarning, stacklevel=2)

@@ -136,7 +136,10 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
             the raw weights.
         dtype: storage dtype of floating tensors: float16 (halves the file), bfloat16 or float32;
             weights are cast back to float32 when loaded.
-        metadata: extra JSON-able facts to store (metrics, data, hardware).
+        metadata: extra JSON-able facts to store (metrics, data, hardware). The file also records
+            the step, the samples seen, the training configuration and (from checkpoints since
+            session 26) ``image_size``, the side of the training images, which
+            :func:`~facenormals.reconstruct.predict_maps` expects of its crops.
         calibration_data: optional dataset (e.g. training samples) on which the landmark detection
             threshold is calibrated (:func:`~facenormals.training.calibrate_landmark_threshold`)
             and stored as ``metadata["landmark_threshold"]``.
@@ -173,7 +176,12 @@ def export_weights(checkpoint: str | Path, out: str | Path, use_ema: bool = True
                          "num_landmarks": state["num_landmarks"]},
         "state_dict": tensors,
         "metadata": {"step": state["step"], "samples_seen": state["samples_seen"], "ema": use_ema,
-                     "train_config": config, **(metadata or {})},
+                     "train_config": config,
+                     # the training images' side, which predict_maps expects of its crops (absent in
+                     # checkpoints before session 26)
+                     **({"image_size": state["image_size"][0]} if "image_size" in state
+                        and state["image_size"][0] == state["image_size"][1] else {}),
+                     **(metadata or {})},
     }
     path = save_checkpoint(out, payload)
     if calibration_data is not None:

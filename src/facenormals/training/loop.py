@@ -188,10 +188,15 @@ def _foreground_per_rank(foreground: Tensor, world_size: int) -> Tensor:
     return count / world_size
 
 
+def _image_size(dataset: Dataset) -> tuple[int, int]:
+    """``(H, W)`` of the training images: the dataset's ``image_size``, else its first image's."""
+    size = getattr(dataset, "image_size", None)
+    return (size, size) if isinstance(size, int) else tuple(int(n) for n in dataset[0]["image"].shape[-2:])
+
+
 def _check_depth_fits_the_images(dataset: Dataset, depth: int) -> None:
     """Refuse, before the run folder exists, a network that halves the images more often than their size allows."""
-    size = getattr(dataset, "image_size", None)
-    height, width = (size, size) if isinstance(size, int) else tuple(dataset[0]["image"].shape[-2:])
+    height, width = _image_size(dataset)
     if height % (1 << depth) or width % (1 << depth):
         raise ValueError(f"depth: {depth} stride-2 levels need images whose sides are divisible by 2**{depth} = "
                          f"{1 << depth}; the training images are {height}x{width} pixels")
@@ -385,6 +390,7 @@ def _train(config: TrainConfig, dataset: Dataset | None, holdout: Dataset | None
     augment = PhotoAugmentation().to(ctx.device)
 
     saved_step = step if last.exists() else None  # the step of the checkpoint a failed run can resume from
+    image_size = _image_size(dataset)  # stored, so that exported weights say what crops they expect
 
     def checkpoint() -> None:
         nonlocal saved_step
@@ -393,7 +399,7 @@ def _train(config: TrainConfig, dataset: Dataset | None, holdout: Dataset | None
             save_checkpoint(last, {
                 "format": "facenormals-train", "config": config.to_dict(), "step": step,
                 "samples_seen": samples_seen, "world_size": ctx.world_size, "num_landmarks": net.num_landmarks,
-                "dataset_size": len(dataset),
+                "dataset_size": len(dataset), "image_size": list(image_size),
                 "model": net.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             })
 
