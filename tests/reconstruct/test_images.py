@@ -68,6 +68,22 @@ def test_floating_point_tiffs_are_read_without_opencv_noise(tmp_path, capfd):
     assert "WARN" not in capfd.readouterr().err
 
 
+def test_signed_and_extreme_samples_still_read(tmp_path):
+    """Reading every depth as it is refused signed TIFFs, which OpenCV's 8-bit decode had read;
+    a float64 image beyond ~1e46 came back black (its scale underflowed in float32), and all
+    pixels at 1e307 read as 'NaN or infinite' (their float64 sum overflowed)."""
+    import cv2
+
+    signed = np.linspace(-3000, 3000, 6 * 8 * 3).reshape(6, 8, 3).astype(np.int16)
+    assert cv2.imwrite(str(tmp_path / "signed.tif"), signed)
+    expected = cv2.cvtColor(cv2.imread(str(tmp_path / "signed.tif"), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(read_image(tmp_path / "signed.tif"), expected)
+    from facenormals.reconstruct.images import _eight_bits
+
+    for value in (1e60, 1e307):
+        assert (_eight_bits(np.full((2, 2, 3), value), Path("x.tif")) == 255).all()
+
+
 def test_exif_orientation_is_applied_to_16_bit_images(tmp_path):
     PIL = pytest.importorskip("PIL.Image")
     grey = np.zeros((20, 40), np.uint16)

@@ -64,6 +64,10 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
     if damage:
         raise ImageReadError(f"{path}: corrupt JPEG data ({damage[0]})")
+    if image.dtype not in (np.uint8, np.uint16) and image.dtype.kind != "f":  # e.g. a signed TIFF
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR)  # OpenCV's own conversion to 8 bits, as before
+        if image is None:
+            raise ImageReadError(f"{path}: not an image, or one in a format OpenCV cannot decode")
     return cv2.cvtColor(_eight_bits(image, path), cv2.COLOR_BGR2RGB)  # a third of the time of a reversed copy
 
 
@@ -75,11 +79,11 @@ def _eight_bits(image: np.ndarray, path: Path) -> np.ndarray:
         bits = next(b for b in (8, 10, 12, 14, 16) if int(image.max()) < 1 << b)
         return np.round(image.astype(np.float32) * (255.0 / ((1 << bits) - 1))).astype(np.uint8)
     if image.dtype.kind == "f":
-        if not np.isfinite(image.sum(dtype=np.float64)):
+        if not np.isfinite(image).all():
             raise ImageReadError(f"{path}: a floating-point image with NaN or infinite pixels")
         top = float(image.max())
-        scale = 255.0 if top <= 1.0 else 1.0 if top <= 255.0 else 255.0 / top
-        return np.round(np.clip(image * np.float32(scale), 0.0, 255.0)).astype(np.uint8)
+        scale = 255.0 if top <= 1.0 else 1.0 if top <= 255.0 else 255.0 / top  # in the image's dtype: no underflow
+        return np.round(np.clip(image * scale, 0.0, 255.0)).astype(np.uint8)
     raise ImageReadError(f"{path}: {image.dtype} samples are not supported (8- or 16-bit integers or floating point)")
 
 
