@@ -57,9 +57,10 @@ def test_the_command_starts_without_torch_and_ctrl_c_while_it_loads_is_one_line(
 
     probe = ("import sys, facenormals, facenormals.cli; loaded = 'torch' in sys.modules; "
              "import facenormals as fn; print(loaded, fn.fitting.__name__, callable(fn.project_points), "
-             "hasattr(fn, 'no_such_op'), 'sample_bicubic' in dir(fn))")
+             "hasattr(fn, 'no_such_op'), 'sample_bicubic' in dir(fn), hasattr(fn, 'fitting.oracle'), "
+             "hasattr(fn, 'a.b'))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["False", "facenormals.fitting", "True", "False", "True"]
+    assert out.split() == ["False", "facenormals.fitting", "True", "False", "True", "False", "False"]
 
     def interrupted():
         raise KeyboardInterrupt

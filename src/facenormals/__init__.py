@@ -91,7 +91,7 @@ def __getattr__(name: str) -> Any:
     """A top-level op or a subpackage (``facenormals.fitting``), imported on first use."""
     if name in _SOURCES:
         value = getattr(importlib.import_module(f"facenormals.{_SOURCES[name]}"), name)
-    elif not name.startswith("_") and importlib.util.find_spec(f"facenormals.{name}") is not None:
+    elif name.isidentifier() and not name.startswith("_") and importlib.util.find_spec(f"facenormals.{name}"):
         value = importlib.import_module(f"facenormals.{name}")
     else:
         raise AttributeError(f"module 'facenormals' has no attribute {name!r}")

@@ -162,3 +162,20 @@ def test_locks_held_by_another_process_are_refused_until_it_dies(tmp_path):
         holder.wait()
     with hold_locks(lock, [1, 3], "shards"):
         pass
+
+
+def test_publish_together_refuses_a_target_named_twice_and_staged_removal_of_a_folder(tmp_path):
+    """Written and removed in one call, a file ended up removed but was reported as written (and the
+    other order kept it): the order of the entries decided. A folder to remove failed the commit
+    with an error naming its backup."""
+    from facenormals.core.files import StagedFiles, publish_together, temporary_beside
+
+    target = tmp_path / "a.txt"
+    part = temporary_beside(target)
+    part.write_text("new")
+    with pytest.raises(ValueError, match=r"pairs: .*a.txt is named twice"):
+        publish_together([(part, target), (None, tmp_path / "." / "a.txt")])
+    assert not target.exists() and part.exists()
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(OSError, match=r"folder: is a folder, not a file to remove"):
+        StagedFiles().remove(tmp_path / "folder")

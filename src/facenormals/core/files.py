@@ -136,6 +136,10 @@ def publish_together(pairs: list[tuple[Path | None, Path]], durable: bool = True
         (['a.txt', 'b.txt'], 'new a')
     """
     pairs = [(None if t is None else Path(t), Path(p)) for t, p in pairs]
+    targets = [os.path.abspath(p) for _, p in pairs]
+    if len(set(targets)) != len(targets):  # which of two entries would win would depend on their order
+        twice = next(t for t in targets if targets.count(t) > 1)
+        raise ValueError(f"pairs: {twice} is named twice; expected each target once")
     umask = _current_umask()
     for temporary, _ in pairs:
         if temporary is not None:
@@ -206,7 +210,10 @@ class StagedFiles:
         return path
 
     def remove(self, path: Path) -> None:
-        """Remove ``path`` (if it exists) in :meth:`commit`, together with publishing the written files."""
+        """Remove the file ``path`` (if it exists) in :meth:`commit`, together with publishing the
+        written files; a folder is refused (found now, not when the commit renames it)."""
+        if path.is_dir() and not path.is_symlink():
+            raise OSError(f"{path}: is a folder, not a file to remove")
         self.files.append((None, path))
 
     def commit(self) -> list[Path]:

@@ -103,7 +103,8 @@ def detect_faces(image: np.ndarray, max_side: int = 480, min_face: float = 0.08,
     Args:
         image: RGB or grey ``uint8`` image ``(H, W, 3)`` / ``(H, W)``.
         max_side: longer side of the searched copy.
-        min_face: smallest face side searched, as a fraction of the shorter image side.
+        min_face: smallest face side of the first search, as a fraction of the shorter image side;
+            the retries search smaller faces (``retry_sides=()`` makes it a strict bound).
         min_hits: drop candidates with fewer overlapping cascade hits.
         retry_sides: longer sides of the copies searched for smaller faces when nothing is found,
             increasing; ``()`` searches once.
