@@ -596,9 +596,31 @@ def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(
     assert messages == ["group.jpg: too few landmarks in the first detected face; using the next one, head crop "
                         "60 px at (10, 20)"]
     # the maps are those of the picked crops: every crop predicted once (both photos as one batch,
-    # then the alternative), and the fit gets them instead of predicting again
+    # then every photo's other faces as one), and the fit gets them instead of predicting again
     assert calls == [2, 1]
     assert bool(maps.found[0].all()) and not bool(maps.found[1].any())
+
+
+def test_another_face_that_the_network_confirms_is_logged(monkeypatch):
+    """A photo of two people fitted one of them without a word (in a multi-view run, possibly the wrong
+    person); a stray detection, in which the network finds no face, is not mentioned."""
+    from facenormals.reconstruct import pipeline, photos
+
+    def fake_predict(net, crops, mirror=True):  # a bright crop is a face with every landmark
+        found = (crops.mean(dim=(1, 2, 3)) > 0.5)[:, None].expand(-1, len(LANDMARK_NAMES))
+        return pipeline.NetworkMaps(torch.zeros(len(crops), 3, 128, 128), torch.zeros(len(crops), 24, 128, 128),
+                                    torch.zeros(len(crops), 24, 2), found.clone(), seconds=0.0)
+
+    monkeypatch.setattr(photos, "predict_maps", fake_predict)
+    dark, bright = np.zeros((128, 128, 3), np.uint8), np.full((128, 128, 3), 255, np.uint8)
+    first = PhotoView(crop=bright, box=(0.0, 0.0, 50.0), path="two.jpg")
+    first.alternatives = [PhotoView(crop=dark, box=(5.0, 5.0, 40.0), path="two.jpg"),  # stray
+                          PhotoView(crop=bright, box=(300.0, 20.0, 180.0), path="two.jpg")]
+    messages = []
+    picked, _ = photos._pick_faces([first], None, builtin_head_model(), False, messages.append)
+    assert picked == [first]
+    assert messages == ["two.jpg: another face, head crop 180 px at (300, 20), is not fitted; pass its face box "
+                        "with --box X,Y,W,H to fit it instead"]
 
 
 def test_predict_maps_checks_its_crops():

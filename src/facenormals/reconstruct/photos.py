@@ -69,31 +69,39 @@ def _network_input(crops: list[np.ndarray]) -> torch.Tensor:
     return torch.from_numpy(np.stack(crops)).permute(0, 3, 1, 2).float() / 255.0
 
 
+#: landmarks the network must find in another detected face for the photo's log to mention it (a
+#: real face shows 18-19 of 24, a stray detection none or one)
+OTHER_FACE_LANDMARKS = 12
+
+
 def _pick_faces(views: list[PhotoView], net, model, mirror: bool,
                 log: Callable[[str], None]) -> tuple[list[PhotoView], NetworkMaps]:
     """The network's maps of every photo's first detected face (one batch); for a photo whose first
     face shows the network too few (< 4) of ``model``'s landmarks (a stray detection can rank first),
-    the first of its other detected faces that shows enough, with its maps."""
+    the first of its other detected faces that shows enough, with its maps. Other detected faces in
+    which the network finds a face (:data:`OTHER_FACE_LANDMARKS`) are logged: the fit uses one."""
     channels = landmark_channels(model)
 
     def predict(crops: list[np.ndarray]) -> NetworkMaps:
         return predict_maps(net, _network_input(crops), mirror=mirror)
 
     maps = predict([v.crop for v in views])
+    candidates = [(i, c) for i, v in enumerate(views) for c in v.alternatives]  # one batch for all photos
+    others = predict([c.crop for _, c in candidates]) if candidates else None
+    if others is not None:
+        maps.seconds += others.seconds
     picked = list(views)
-    for i, view in enumerate(views):
-        if not view.alternatives or int(maps.found[i, channels].sum()) >= 4:
-            continue
-        for candidate in view.alternatives:
-            other = predict([candidate.crop])
-            if int(other.found[0, channels].sum()) >= 4:
-                picked[i] = candidate
-                for field in ("normal_maps", "landmark_maps", "landmarks", "found"):
-                    getattr(maps, field)[i] = getattr(other, field)[0]
-                maps.seconds += other.seconds
-                log(f"{view.path}: too few landmarks in the first detected face; using the next one, head crop "
-                    f"{candidate.box[2]:.0f} px at ({candidate.box[0]:.0f}, {candidate.box[1]:.0f})")
-                break
+    for k, (i, candidate) in enumerate(candidates):
+        found = int(others.found[k, channels].sum())
+        if picked[i] is views[i] and int(maps.found[i, channels].sum()) < 4 and found >= 4:
+            picked[i] = candidate
+            for field in ("normal_maps", "landmark_maps", "landmarks", "found"):
+                getattr(maps, field)[i] = getattr(others, field)[k]
+            log(f"{views[i].path}: too few landmarks in the first detected face; using the next one, head crop "
+                f"{candidate.box[2]:.0f} px at ({candidate.box[0]:.0f}, {candidate.box[1]:.0f})")
+        elif found >= OTHER_FACE_LANDMARKS:
+            log(f"{views[i].path}: another face, head crop {candidate.box[2]:.0f} px at ({candidate.box[0]:.0f}, "
+                f"{candidate.box[1]:.0f}), is not fitted; pass its face box with --box X,Y,W,H to fit it instead")
     return picked, maps
 
 
