@@ -574,18 +574,25 @@ def test_bad_device_names_the_argument(tmp_path):
             reconstruct_photos([tmp_path / "a.jpg"], None, model="builtin", device=device, log=lambda *a: None)
 
 
-def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(monkeypatch):
-    from facenormals.reconstruct import pipeline, photos
+def _bright_crops_are_faces(calls: list | None = None):
+    """A stand-in for predict_maps: a bright crop is a face with every landmark, a dark one none;
+    ``calls`` collects the batch sizes."""
+    from facenormals.reconstruct import pipeline
 
-    calls = []
-
-    def fake_predict(net, crops, mirror=True):  # a bright crop is a face with every landmark
-        calls.append(len(crops))
+    def predict(net, crops, mirror=True):
+        if calls is not None:
+            calls.append(len(crops))
         found = (crops.mean(dim=(1, 2, 3)) > 0.5)[:, None].expand(-1, len(LANDMARK_NAMES))
         return pipeline.NetworkMaps(torch.zeros(len(crops), 3, 128, 128), torch.zeros(len(crops), 24, 128, 128),
                                     torch.zeros(len(crops), 24, 2), found.clone(), seconds=0.0)
+    return predict
 
-    monkeypatch.setattr(photos, "predict_maps", fake_predict)
+
+def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(monkeypatch):
+    from facenormals.reconstruct import photos
+
+    calls = []
+    monkeypatch.setattr(photos, "predict_maps", _bright_crops_are_faces(calls))
     dark, bright = np.zeros((128, 128, 3), np.uint8), np.full((128, 128, 3), 255, np.uint8)
     stray = PhotoView(crop=dark, box=(0.0, 0.0, 50.0), path="group.jpg")
     stray.alternatives = [PhotoView(crop=bright, box=(10.0, 20.0, 60.0), path="group.jpg")]
@@ -604,14 +611,9 @@ def test_the_next_detected_face_is_tried_when_the_first_shows_too_few_landmarks(
 def test_another_face_that_the_network_confirms_is_logged(monkeypatch):
     """A photo of two people fitted one of them without a word (in a multi-view run, possibly the wrong
     person); a stray detection, in which the network finds no face, is not mentioned."""
-    from facenormals.reconstruct import pipeline, photos
+    from facenormals.reconstruct import photos
 
-    def fake_predict(net, crops, mirror=True):  # a bright crop is a face with every landmark
-        found = (crops.mean(dim=(1, 2, 3)) > 0.5)[:, None].expand(-1, len(LANDMARK_NAMES))
-        return pipeline.NetworkMaps(torch.zeros(len(crops), 3, 128, 128), torch.zeros(len(crops), 24, 128, 128),
-                                    torch.zeros(len(crops), 24, 2), found.clone(), seconds=0.0)
-
-    monkeypatch.setattr(photos, "predict_maps", fake_predict)
+    monkeypatch.setattr(photos, "predict_maps", _bright_crops_are_faces())
     dark, bright = np.zeros((128, 128, 3), np.uint8), np.full((128, 128, 3), 255, np.uint8)
     first = PhotoView(crop=bright, box=(0.0, 0.0, 50.0), path="two.jpg")
     first.alternatives = [PhotoView(crop=dark, box=(5.0, 5.0, 40.0), path="two.jpg"),  # stray
