@@ -117,3 +117,11 @@ def test_half_precision_maps_decode_to_float32_sub_pixel_points(dtype, tolerance
     decoded, found = landmarks_from_maps(maps, threshold=torch.full((24,), 0.5, dtype=dtype))
     assert decoded.dtype == torch.float32 and bool(found.all())
     assert float((decoded.double() - points).abs().max()) < tolerance
+
+
+def test_a_float_threshold_is_not_rounded_to_the_maps_half_precision():
+    """A bfloat16 peak of 0.77734375 exceeds the threshold 0.776, which bfloat16 rounds up to the
+    peak itself: compared in bfloat16, the landmark was not found."""
+    maps = torch.zeros(1, 1, 5, 5, dtype=torch.bfloat16)
+    maps[0, 0, 2, 2] = 0.77734375
+    assert bool(landmarks_from_maps(maps, threshold=0.776)[1].all())

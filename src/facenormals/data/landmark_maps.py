@@ -121,13 +121,13 @@ def landmarks_from_maps(maps: Tensor, threshold: float | Tensor = 0.1, eps: floa
     if h < 1 or w < 1:
         raise ValueError(f"maps: expected H, W >= 1, got shape {tuple(maps.shape)}")
     check_positive(eps, "eps")  # log(0) made the sub-pixel offset NaN at a landmark counted as found
+    if maps.dtype in (torch.float16, torch.bfloat16):  # decoded in float32, the threshold not rounded to half
+        return landmarks_from_maps(maps.float(), threshold, eps)
     threshold = torch.as_tensor(threshold, dtype=maps.dtype, device=maps.device)
     if threshold.dim() != 0:
         check_shape(threshold, [l], "threshold")
     if bool(torch.isnan(threshold).any()):  # would find nothing, silently (-inf: everything is allowed)
         raise ValueError("threshold: expected numbers (or -inf to keep every peak), got NaN")
-    if maps.dtype in (torch.float16, torch.bfloat16):
-        return landmarks_from_maps(maps.float(), threshold, eps)
     flat = maps.reshape(b, l, h * w)
     peak, index = flat.max(-1)
     row, col = index // w, index % w
