@@ -194,9 +194,9 @@ def _image_size(dataset: Dataset) -> tuple[int, int]:
     return (size, size) if isinstance(size, int) else tuple(int(n) for n in dataset[0]["image"].shape[-2:])
 
 
-def _check_depth_fits_the_images(dataset: Dataset, depth: int) -> None:
+def _check_depth_fits_the_images(image_size: tuple[int, int], depth: int) -> None:
     """Refuse, before the run folder exists, a network that halves the images more often than their size allows."""
-    height, width = _image_size(dataset)
+    height, width = image_size
     if height % (1 << depth) or width % (1 << depth):
         raise ValueError(f"depth: {depth} stride-2 levels need images whose sides are divisible by 2**{depth} = "
                          f"{1 << depth}; the training images are {height}x{width} pixels")
@@ -315,7 +315,8 @@ def _train(config: TrainConfig, dataset: Dataset | None, holdout: Dataset | None
         _check_holdout_is_not_training_data(dataset, config.holdout)
     if holdout is None and config.holdout and ctx.is_main:
         holdout = _open_dataset(config.holdout, config, with_maps=False)
-    _check_depth_fits_the_images(dataset, config.depth)
+    image_size = _image_size(dataset)  # also stored, so that exported weights say what crops they expect
+    _check_depth_fits_the_images(image_size, config.depth)
     if config.init is not None and not last.exists() and not Path(config.init).is_file():
         what = "a folder, not a weight file" if Path(config.init).is_dir() else "no such weight file"
         raise FileNotFoundError(f"init: {config.init}: {what}")
@@ -390,7 +391,6 @@ def _train(config: TrainConfig, dataset: Dataset | None, holdout: Dataset | None
     augment = PhotoAugmentation().to(ctx.device)
 
     saved_step = step if last.exists() else None  # the step of the checkpoint a failed run can resume from
-    image_size = _image_size(dataset)  # stored, so that exported weights say what crops they expect
 
     def checkpoint() -> None:
         nonlocal saved_step
