@@ -462,7 +462,9 @@ def _wrap_degrees(radians: float) -> float:
 
 #: The files :func:`write_reconstruction` writes besides the per-view pictures (``_VIEW_PICTURE``).
 RECONSTRUCTION_FILES = ("head.ply", "head.obj", "params.json")
-_VIEW_PICTURE = re.compile(r"view(\d+)_(overlay|normals|landmarks)\.png")
+#: The pictures written per view, ``view{v}_{kind}.png``.
+VIEW_PICTURE_KINDS = ("overlay", "normals", "landmarks")
+_VIEW_PICTURE = re.compile(rf"view(\d+)_({'|'.join(VIEW_PICTURE_KINDS)})\.png")
 
 
 def reconstruction_would_replace(path: str | Path, out_dir: str | Path) -> bool:
@@ -492,7 +494,7 @@ def write_reconstruction(rec: Reconstruction, out_dir: str | Path) -> list[Path]
         # an earlier run with more photos left views this one does not have: they would not match params.json
         inputs = {Path(view.path).resolve() for view in rec.views if view.path is not None}
         for v in range(len(rec.views), _written_views(out / "params.json")):
-            for kind in ("overlay", "normals", "landmarks"):
+            for kind in VIEW_PICTURE_KINDS:
                 stale = out / f"view{v}_{kind}.png"
                 if (stale.is_file() or stale.is_symlink()) and stale.resolve() not in inputs:
                     staged.remove(stale)
