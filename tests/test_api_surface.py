@@ -33,7 +33,7 @@ PUBLIC = {
                                 "prepare_view", "read_image", "reconstruct_photos", "reconstruct_views",
                                 "write_reconstruction"],
     "facenormals.data": ["HEAD_LABELS", "HeadlessGLError", "LABELS", "PhotoAugmentation", "SynthBatch", "SynthConfig",
-                         "SynthSummary", "SyntheticHeadDataset", "SyntheticHeadGenerator", "landmark_maps",
+                         "SynthSummary", "SyntheticHeadDataset", "SyntheticHeadGenerator", "blocked_rays", "landmark_maps",
                          "landmarks_from_maps", "random_background", "read_manifest", "select_gl_platform",
                          "write_dataset"],
     "facenormals.eval": ["AlignmentResult", "DEFAULT_ALIGNMENT_LANDMARKS", "DepthStatistics", "EvaluationReport",

@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -126,47 +128,112 @@ def test_landmark_peaks_lie_on_the_projected_vertices(generator, samples):
     assert float((pixel - projected).abs().amax(-1)[visible].max()) <= 0.5 + 1e-4
 
 
+def _ray_gaps(point, parts):
+    """Per part label, the largest distance in front of camera-frame ``point`` ``(3,)`` at which its
+    ray from the camera centre crosses a triangle of that label (0 where none crosses), by signed
+    volumes rather than the library's Möller-Trumbore: the ray meets the cone of triangle (a, b, c)
+    where ``p . (a x b)``, ``p . (b x c)``, ``p . (c x a)`` share a sign, at ``s = (a . n) / (p . n)``."""
+    gaps = {}
+    for part in parts:
+        posed = (part.vertices.astype(np.float64) + part.translation) @ np.asarray(part.rotation, np.float64).T
+        a, b, c = (posed[part.faces[:, k]] for k in range(3))
+        volumes = [np.cross(x, y) @ point for x, y in ((a, b), (b, c), (c, a))]
+        cone = np.all([v >= 0 for v in volumes], 0) | np.all([v <= 0 for v in volumes], 0)
+        n = np.cross(b - a, c - a)
+        s = np.einsum("ki,ki->k", a, n) / np.where(n @ point == 0, np.nan, n @ point)
+        crossing = cone & (s > 0) & (s < 1)
+        gap = float((1 - s[crossing]).max() * np.linalg.norm(point)) if crossing.any() else 0.0
+        gaps[part.label] = max(gaps.get(part.label, 0.0), gap)
+    return gaps
+
+
+def _reference_visibility(generator, seed, indices, skip_labels=()):
+    """The visibility rule of ``docs/synthetic_data.md``, by brute force over every triangle of each
+    sample's scene: inside the image, no hair, cap, clothing or occluder in front, and the head
+    surface at most max(3 mm, 2 pixels at the landmark's depth) in front. Also returns the gaps."""
+    visible, gaps = [], []
+    for index in indices:
+        plan = generator._plan(seed, index)
+        record = plan.record
+        R, t = record["rotation"].astype(np.float64), record["translation"].astype(np.float64)
+        vertices = generator.assets.vertices(record["shape_coeffs"], record["expression_coeffs"]
+                                             if generator.model.num_expressions else None)[1]
+        points = (vertices[generator.model.landmark_indices.numpy()].astype(np.float64) + t) @ R.T
+        parts = [p for p in plan.scene.parts if p.label not in skip_labels]
+        size = generator.config.image_size
+        inside = (np.rint(record["landmarks"]) >= 0).all(-1) & (np.rint(record["landmarks"]) <= size - 1).all(-1)
+        row, row_gaps = [], []
+        for k, point in enumerate(points):
+            gap = _ray_gaps(point, parts)
+            slack = max(3.0, 2.0 * point[2] / float(record["intrinsics"][0]))
+            head = max([gap.get(label, 0.0) for label in HEAD_LABELS])
+            others = max([g for label, g in gap.items() if label not in HEAD_LABELS] + [0.0])
+            row.append(bool(inside[k]) and head <= slack and others == 0.0)
+            row_gaps.append((head, others, slack, gap.get(LABELS["hair"], 0.0)))
+        visible.append(row)
+        gaps.append(row_gaps)
+    return np.array(visible), np.array(gaps)
+
+
+def test_landmark_visibility_is_an_exact_ray_cast(generator, samples):
+    """The stored visibility agrees with a brute-force ray cast of each landmark against every
+    triangle of the scene; both kinds of decision occur on seed 11."""
+    visible, gaps = _reference_visibility(generator, 11, range(len(samples)))
+    np.testing.assert_array_equal(samples.landmark_visible, visible)
+    head, others, slack = gaps[..., 0], gaps[..., 1], gaps[..., 2]
+    assert ((head > slack) & (others == 0)).any() and (others > 0).any() and visible.any()
+
+
 def test_visible_landmarks_lie_on_the_head_surface_or_its_outline(generator, samples):
-    """A visible landmark's nearest pixel shows the head, or nothing or something behind it with the
-    head next to it (a landmark on the outline); one under hair, a cap, clothing or an occluder in
-    front of it is hidden."""
+    """Against the rendered image: a visible landmark has a head pixel next to its nearest pixel (on
+    the head surface or on its outline), and landmarks outside the image are invisible."""
     b = samples
     u = np.rint(b.landmarks[..., 0]).astype(int).clip(0, 127)
     v = np.rint(b.landmarks[..., 1]).astype(int).clip(0, 127)
     rows = np.arange(len(b))[:, None]
-    label = b.segmentation[rows, v, u]
-    vertices, R, t, K = _ground_truth(generator.model, b)
-    _, depth = project_points(generator.model.landmark_vertices(vertices), R, t, K)
-    in_front = b.depth[rows, v, u] <= depth.numpy()  # the surface at the pixel is not behind the landmark
-    assert not b.landmark_visible[~np.isin(label, HEAD_LABELS) & in_front].any()
     head = np.pad(np.isin(b.segmentation, HEAD_LABELS), ((0, 0), (1, 1), (1, 1)))
     near_head = np.zeros_like(b.landmark_visible)
     for dv in (0, 1, 2):
         for du in (0, 1, 2):
             near_head |= head[rows, v + dv, u + du]
-    outline = b.landmark_visible & ~np.isin(label, HEAD_LABELS)
-    assert near_head[outline].all()
-    # on the head surface, a visible landmark lies at most the slack behind it: max(3 mm, 2 pixels)
-    on_head = b.landmark_visible & ~outline
-    slack = np.maximum(3.0, 2.0 * depth.numpy() / b.intrinsics[:, None, 0])
-    assert (depth.numpy() <= b.depth[rows, v, u] + slack)[on_head].all()
+    assert near_head[b.landmark_visible].all()
     inside = (b.landmarks >= 0).all(-1) & (b.landmarks <= 127).all(-1)
     assert not b.landmark_visible[~inside].any()
 
 
 def test_hair_just_in_front_of_a_landmark_hides_it(generator):
-    """Hair lies millimetres above the skin, within the depth slack of the z-buffer test: the label
-    of the pixel must hide the landmark (seed 7 has such landmarks on both heads)."""
+    """Hair lies millimetres above the skin, within the head surface's depth slack: it hides the
+    landmarks it covers all the same (seed 7 has such landmarks on both heads)."""
     b = generator.generate(7, range(16))
-    u, v = np.rint(b.landmarks).astype(int).clip(0, 127).transpose(2, 0, 1)
-    rows = np.arange(len(b))[:, None]
-    vertices, R, t, K = _ground_truth(generator.model, b)
-    depth = project_points(generator.model.landmark_vertices(vertices), R, t, K)[1].numpy()
-    surface = b.depth[rows, v, u]
-    slack = np.maximum(3.0, 2.0 * depth / b.intrinsics[:, None, 0])
-    under_hair = (b.segmentation[rows, v, u] == LABELS["hair"]) & (surface <= depth) & (depth <= surface + slack)
+    visible, gaps = _reference_visibility(generator, 7, range(16))
+    hair, slack = gaps[..., 3], gaps[..., 2]
+    under_hair = (hair > 0) & (hair <= slack) & (gaps[..., 0] <= slack)
     assert under_hair.sum() >= 3
     assert not b.landmark_visible[under_hair].any()
+    np.testing.assert_array_equal(b.landmark_visible, visible)
+
+
+def test_occluders_are_aimed_at_landmarks_the_image_shows(generator, monkeypatch):
+    """Occluders cover landmarks that nothing else hides, not far-side ones that no image shows."""
+    import facenormals.data.generator as module
+
+    aimed = []
+    original = module.occluder_parts
+
+    def recording(rng, targets, *args):
+        aimed.append(targets.copy())
+        return original(rng, targets, *args)
+
+    monkeypatch.setattr(module, "occluder_parts", recording)
+    with configured(generator, dataclasses.replace(generator.config, occluder_probability=1.0)) as gen:
+        before, _ = _reference_visibility(gen, 5, range(6), skip_labels=(LABELS["occluder"],))
+        aimed.clear()
+        b = gen.generate(5, range(6))
+    vertices, R, t, _ = _ground_truth(gen.model, b)
+    landmarks = transform_points(gen.model.landmark_vertices(vertices), R, t).numpy()
+    assert len(aimed) == 6 and (~before).any()
+    for targets, points, shows in zip(aimed, landmarks, before):
+        np.testing.assert_allclose(targets, points[shows], atol=1e-3)
 
 
 def test_landmarks_outside_the_image_are_invisible(generator):
@@ -452,32 +519,33 @@ def test_the_head_of_seed_0_index_208_is_inside(generator):
 
 
 def test_visibility_rules():
-    """Each clause of the landmark visibility on a hand-made z-buffer (focal length 500 px, landmarks
-    400 mm away: the depth slack is max(3 mm, 2 px = 1.6 mm) = 3 mm)."""
+    """Each clause of the landmark visibility on hand-made scenes: a square patch on each landmark's
+    ray (focal length 500 px, landmarks 400 mm away: the depth slack is max(3 mm, 2 px = 1.6 mm) = 3 mm)."""
     from facenormals.data import SyntheticHeadGenerator
+    from facenormals.data.render import MeshPart
 
     generator = SyntheticHeadGenerator("builtin", SynthConfig.head_only(use_skimage=False))
     skin, hair = LABELS["skin"], LABELS["hair"]
-    cases = [  # (u, v), label and depth of the surface at the nearest pixel, expected visibility
-        ((10.2, 10.0), skin, 399.0, True),  # on the head surface
-        ((20.0, 20.4), skin, 398.0, True),  # 2 mm in front: within the slack (surface slope)
+    cases = [  # (u, v), label and depth of a patch across the landmark's ray (None: none), expected visibility
+        ((10.2, 10.0), skin, 400.0, True),  # on the head surface
+        ((20.0, 20.4), skin, 398.0, True),  # 2 mm in front: within the slack (a crease)
         ((30.0, 30.0), skin, 396.0, False),  # 4 mm in front: hidden by the head
         ((40.0, 40.0), hair, 399.9, False),  # hair in front, however thin, hides it
         ((50.0, 50.0), hair, 401.0, True),  # hair behind it (a landmark on the outline)
-        ((60.0, 60.0), 0, np.inf, True),  # nothing at the pixel: on the outline
-        ((127.4, 70.0), skin, 400.0, True),  # the last pixel column
-        ((127.6, 80.0), skin, 400.0, False),  # outside the image, though the edge pixel shows the head
-        ((90.0, -0.6), skin, 400.0, False),
+        ((60.0, 60.0), None, None, True),  # nothing on the ray
+        ((127.4, 70.0), None, None, True),  # the last pixel column
+        ((127.6, 80.0), None, None, False),  # outside the image, though nothing hides it
+        ((90.0, -0.6), None, None, False),
     ]
-    pixels = np.array([[c[0] for c in cases]], np.float32)
-    zbuffer = np.full((1, 128, 128), np.inf, np.float32)
-    labels = np.zeros((1, 128, 128), np.uint8)
-    for (u, v), label, depth, _ in cases:
-        row, column = min(max(round(v), 0), 127), min(max(round(u), 0), 127)
-        zbuffer[0, row, column], labels[0, row, column] = depth, label
-    visible = generator._visibility(pixels, np.full((1, len(cases)), 400.0, np.float32),
-                                    np.array([[500.0, 63.5, 63.5]], np.float32), zbuffer, labels)
-    assert visible[0].tolist() == [c[3] for c in cases]
+    pixels = np.array([c[0] for c in cases], np.float32)
+    focal, centre = 500.0, 63.5
+    landmarks = np.column_stack([(pixels - centre) * 400.0 / focal, np.full(len(cases), 400.0)])
+    square = np.array([[-2.0, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]])
+    parts = [MeshPart(vertices=(square + landmarks[k] * depth / 400.0).astype(np.float32), normals=np.tile([0, 0, -1.0], (4, 1)),
+                      colors=np.ones((4, 3)), faces=np.array([[0, 1, 2], [0, 2, 3]]), label=label)
+             for k, (_, label, depth, _) in enumerate(cases) if label is not None]
+    visible = generator._visible(pixels, landmarks, focal, parts)
+    assert visible.tolist() == [c[3] for c in cases]
 
 
 @pytest.mark.parametrize("model", [None, 3, torch.zeros(3)])

@@ -9,6 +9,7 @@ from facenormals.data.backgrounds import random_background
 from facenormals.data.dataset import SyntheticHeadDataset
 from facenormals.data.generator import SynthBatch, SynthConfig, SyntheticHeadGenerator
 from facenormals.data.landmark_maps import landmark_maps, landmarks_from_maps
+from facenormals.data.raycast import blocked_rays
 from facenormals.data.gl_platform import HeadlessGLError, select_gl_platform
 from facenormals.data.scene import HEAD_LABELS, LABELS
 from facenormals.data.shards import SynthSummary, read_manifest, write_dataset
@@ -23,6 +24,7 @@ __all__ = [
     "SynthSummary",
     "SyntheticHeadDataset",
     "SyntheticHeadGenerator",
+    "blocked_rays",
     "landmark_maps",
     "landmarks_from_maps",
     "random_background",

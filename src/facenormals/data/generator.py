@@ -23,9 +23,16 @@ import numpy as np
 import torch
 
 from facenormals.core.check import check_integer
-from facenormals.data.appearance import sample_hair_color, sample_iris_color, sample_lighting, skin_albedo, srgb_to_linear
+from facenormals.data.appearance import (
+    sample_hair_color,
+    sample_iris_color,
+    sample_lighting,
+    skin_albedo,
+    srgb_to_linear,
+)
 from facenormals.data.backgrounds import PhotoLibrary, random_background
 from facenormals.data.head import HeadAssets
+from facenormals.data.raycast import blocked_rays
 from facenormals.data.render import FAR_MM, NEAR_MM, MeshPart, RenderedTiles, TileRenderer, TileScene
 from facenormals.data.scene import (
     HEAD_LABELS,
@@ -42,9 +49,12 @@ __all__ = ["SynthBatch", "SynthConfig", "SyntheticHeadGenerator"]
 
 _STREAMS = ("shape", "pose", "camera", "skin", "hair", "light", "background", "extras")
 #: Version of what a (seed, index) draws: bumped whenever the same sample's bytes change (2: the
-#: framing solved by Newton's method, clutter colours clipped), so that a dataset is never resumed
+#: framing solved by Newton's method, clutter colours clipped; 3: landmark visibility by ray casting,
+#: occluders aimed at visible landmarks), so that a dataset is never resumed
 #: with samples of two generators (a manifest without it was written by version 1).
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
+#: Least depth slack in mm by which the head surface may lie in front of a landmark it does not hide.
+LANDMARK_DEPTH_SLACK_MM = 3.0
 #: Most iterations of the framing solve (it converges in 3 or 4), and the margin in pixels by which
 #: the framed head stays inside the image edges (float32 rounding of the stored camera moves ~1e-5 px).
 _FRAME_ITERATIONS = 50
@@ -503,23 +513,24 @@ class SyntheticHeadGenerator:
         elif style < cfg.hair_probability + cfg.cap_probability:
             cap = srgb_to_linear(hair_rng.uniform(0.05, 0.9, size=3))
             parts += hair_parts(self.assets, vertices, normals, hair_rng, cap, "cap", R, t)
+        with torch.no_grad():  # one sample at a time: the values never depend on the batch
+            pixels = project_points(
+                torch.from_numpy(vertices[model.landmark_indices.numpy()])[None], torch.from_numpy(rotation)[None],
+                torch.from_numpy(translation)[None], torch.from_numpy(intrinsics)[None])[0][0].numpy()
+        landmarks = (vertices[model.landmark_indices.numpy()].astype(np.float64) + t) @ R.T  # camera frame
+        visible = self._visible(pixels, landmarks, float(intrinsics[0]), parts)
         if extras.random() < cfg.occluder_probability:
-            lm = vertices[model.landmark_indices.numpy()].astype(np.float64)
-            camera_lm = (lm + t) @ R.T
-            front = camera_lm[camera_lm[:, 2] > 0]
             head_size = float(np.ptp(vertices[self.assets.framing], axis=0).max())
-            if len(front):
-                parts += occluder_parts(extras, front, head_size, albedo.mean(0), int(extras.integers(1, 3)))
+            targets = landmarks[visible] if visible.any() else landmarks  # cover what the image shows
+            occluders = occluder_parts(extras, targets, head_size, albedo.mean(0), int(extras.integers(1, 3)))
+            parts += occluders
+            visible &= ~_blocked(landmarks, occluders, 0.0)
         lighting = sample_lighting(rng["light"], cfg.num_lights, cfg.temperature)
         background = random_background(rng["background"], (cfg.image_size, cfg.image_size), self.photos,
                                        cfg.photo_probability)
-        with torch.no_grad():  # one sample at a time: the values never depend on the batch
-            pixels, depth = project_points(
-                torch.from_numpy(vertices[model.landmark_indices.numpy()])[None], torch.from_numpy(rotation)[None],
-                torch.from_numpy(translation)[None], torch.from_numpy(intrinsics)[None])
         record = {"shape_coeffs": shape, "expression_coeffs": expression, "angles": angles, "rotation": rotation,
-                  "translation": translation, "intrinsics": intrinsics, "landmarks": pixels[0].numpy(),
-                  "landmark_depth": depth[0].numpy()}
+                  "translation": translation, "intrinsics": intrinsics, "landmarks": pixels,
+                  "landmark_visible": visible}
         return _Plan(index=index, scene=TileScene(parts, intrinsics, lighting), background=background, record=record)
 
     # ------------------------------------------------------------------ after rendering
@@ -532,8 +543,7 @@ class SyntheticHeadGenerator:
         head = np.isin(rendered.labels, HEAD_LABELS)
         normals = np.where(head[..., None], rendered.normals, np.float32(0.0)).transpose(0, 3, 1, 2)
         record = {k: np.stack([p.record[k] for p in plans]) for k in plans[0].record}
-        pixels, depth = record.pop("landmarks"), record.pop("landmark_depth")
-        visible = self._visibility(pixels, depth, record["intrinsics"], rendered.depth, rendered.labels)
+        pixels, visible = record.pop("landmarks"), record.pop("landmark_visible")
         return SynthBatch(
             index=np.array([p.index for p in plans], dtype=np.int64),
             image=images,
@@ -550,29 +560,23 @@ class SyntheticHeadGenerator:
             intrinsics=record["intrinsics"],
         )
 
-    def _visibility(self, pixels: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, zbuffer: np.ndarray,
-                    labels: np.ndarray) -> np.ndarray:
-        """Landmarks inside the image that nothing hides: their nearest pixel shows the head surface
-        at their depth, or something behind them or nothing at all (a landmark on the outline, e.g.
-        the nose tip in profile, over the background, or over hair or clothing farther away).
+    def _visible(self, pixels: np.ndarray, landmarks: np.ndarray, focal: float, parts: list[MeshPart]) -> np.ndarray:
+        """Landmarks ``(L,)`` whose nearest pixel lies in the image and that nothing in ``parts`` hides.
 
-        The depth slack is the larger of 3 mm and the lateral size of two pixels at the landmark's
-        depth, which absorbs the surface slope between the landmark and the pixel centre.
+        A ray cast from the camera centre to each camera-frame landmark ``(L, 3)``
+        (:func:`~facenormals.data.raycast.blocked_rays`): hair, headwear, clothing and occluders hide
+        it wherever they cross the ray in front of it; the head surface (skin, eyes, mouth) only more
+        than the slack in front of it, the larger of 3 mm and the lateral size of two pixels at its
+        depth. The slack keeps landmarks in creases visible (an eye corner tucked a few mm behind
+        its lids): a fold that shallow does not move where the image shows the landmark.
         """
         size = self.config.image_size
-        finite = np.isfinite(pixels).all(-1)
-        u = np.rint(np.where(finite, pixels[..., 0], -1.0))
-        v = np.rint(np.where(finite, pixels[..., 1], -1.0))
-        inside = finite & (u >= 0) & (u <= size - 1) & (v >= 0) & (v <= size - 1) & (depth > 0)
-        ui = np.clip(u, 0, size - 1).astype(np.int64)
-        vi = np.clip(v, 0, size - 1).astype(np.int64)
-        b = np.arange(len(pixels))[:, None]
-        surface = zbuffer[b, vi, ui]
-        label = labels[b, vi, ui]
-        # hair, headwear, occluders and clothing hide a landmark only in front of it (background: depth inf)
-        unhidden = np.isin(label, HEAD_LABELS) | (surface > depth)
-        slack = np.maximum(3.0, 2.0 * depth / intrinsics[:, None, 0])
-        return inside & unhidden & (depth <= surface + slack)
+        u, v = np.rint(pixels[:, 0]), np.rint(pixels[:, 1])
+        inside = np.isfinite(pixels).all(-1) & (u >= 0) & (u <= size - 1) & (v >= 0) & (v <= size - 1)
+        slack = np.maximum(LANDMARK_DEPTH_SLACK_MM, 2.0 * landmarks[:, 2] / focal)
+        head = [p for p in parts if p.label in HEAD_LABELS]
+        others = [p for p in parts if p.label not in HEAD_LABELS]
+        return inside & ~_blocked(landmarks, head, slack) & ~_blocked(landmarks, others, 0.0)
 
     def _empty(self) -> SynthBatch:
         s, k, e = self.config.image_size, self.model.num_shape, self.model.num_expressions
@@ -585,6 +589,20 @@ class SyntheticHeadGenerator:
             angles=np.zeros((0, 3), np.float32), rotation=np.zeros((0, 3, 3), np.float32),
             translation=np.zeros((0, 3), np.float32), intrinsics=np.zeros((0, 3), np.float32),
         )  # fmt: skip
+
+
+def _blocked(points: np.ndarray, parts: list[MeshPart], tolerance: float | np.ndarray) -> np.ndarray:
+    """:func:`~facenormals.data.raycast.blocked_rays` of camera-frame ``points`` ``(P, 3)`` by the
+    triangles of ``parts``, posed into the camera frame."""
+    if not parts:
+        return np.zeros(len(points), dtype=bool)
+    vertices, faces, offset = [], [], 0
+    for part in parts:
+        posed = (part.vertices.astype(np.float64) + np.asarray(part.translation, np.float64)) @ np.asarray(part.rotation, np.float64).T
+        vertices.append(posed)
+        faces.append(part.faces + offset)
+        offset += len(part.vertices)
+    return blocked_rays(points, np.concatenate(vertices), np.concatenate(faces), tolerance)
 
 
 def _check_int(value: object, name: str) -> int:
