@@ -213,6 +213,23 @@ def test_hair_just_in_front_of_a_landmark_hides_it(generator):
     np.testing.assert_array_equal(b.landmark_visible, visible)
 
 
+def test_lights_are_exposed_for_the_head(generator):
+    """No head is overexposed by its lights: the 90th percentile of the camera-facing head's diffuse
+    radiance (computed vertex by vertex in the test) is at most the top of the exposure range, and
+    some heads' lights were dimmed to it (they lie inside the range)."""
+    from tests.data.test_appearance import _facing_radiance
+
+    levels = []
+    for index in range(24):
+        plan = generator._plan(13, index)
+        head = next(p for p in plan.scene.parts if p.label == LABELS["skin"])
+        levels.append(np.percentile(_facing_radiance(plan.scene.lighting, head).max(1), 90))
+    levels = np.array(levels)
+    low, high = generator.config.exposure
+    assert (levels <= high + 1e-9).all()
+    assert ((levels >= low - 1e-9) & (levels <= high + 1e-9)).sum() >= 3
+
+
 def test_occluders_are_aimed_at_landmarks_the_image_shows(generator, monkeypatch):
     """Occluders cover landmarks that nothing else hides, not far-side ones that no image shows."""
     import facenormals.data.generator as module
@@ -346,6 +363,9 @@ def test_wider_identity_range(generator):
     "kwargs, match",
     [
         ({"fill": (0.0, 0.5)}, "fill"),
+        ({"exposure": (0.0, 1.0)}, r"exposure: expected 0 < low <= high <= 1, got \(0.0, 1.0\)"),
+        ({"exposure": (0.9, 1.2)}, r"exposure: expected 0 < low <= high <= 1"),
+        ({"exposure": 0.9}, r"exposure: expected a \(low, high\) pair of numbers, got 0.9"),
         ({"hair_probability": 1.5}, "hair_probability"),
         ({"hair_probability": 0.8, "cap_probability": 0.5}, "hair_probability \\+ cap_probability"),
         ({"supersample": 2}, "supersample"),

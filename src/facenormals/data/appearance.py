@@ -10,11 +10,13 @@ from typing import Callable
 
 import numpy as np
 
-from facenormals.data.render import Lighting
+from facenormals.data.render import Lighting, MeshPart
 
 __all__ = [
+    "EXPOSURE_PERCENTILE",
     "HAIR_COLORS",
     "SKIN_TONES",
+    "auto_exposure",
     "color_temperature",
     "fourier_noise",
     "sample_lighting",
@@ -185,3 +187,43 @@ def sample_lighting(rng: np.random.Generator, num_lights: tuple[int, int] = (1, 
     ambient = color_temperature(rng.uniform(*temperature)) * rng.uniform(0.12, 0.55)
     return Lighting(ambient=ambient, directions=np.asarray(directions, dtype=np.float64).reshape(-1, 3),
                     colors=np.asarray(colors, dtype=np.float64).reshape(-1, 3))  # (0, 3) without lights
+
+
+#: The percentile of the lit head's brightest channel, over its vertices that face the camera, that
+#: :func:`auto_exposure` brings down to the exposure target.
+EXPOSURE_PERCENTILE = 90.0
+
+
+def auto_exposure(lighting: Lighting, head: MeshPart, target: float) -> Lighting:
+    """The lights dimmed so that the head is not overexposed, as a camera's auto-exposure would.
+
+    The diffuse radiance of the head (the renderer's wrap-Lambert and ambient terms with the part's
+    albedo and ambient occlusion, without texture noise or highlights) is evaluated at its vertices
+    that face the camera. Where the :data:`EXPOSURE_PERCENTILE` of their brightest channel exceeds
+    ``target`` (linear RGB, 1 = white), the ambient and every light are scaled by the same factor to
+    bring it to ``target``; darker heads keep their lights (underexposure clips nothing).
+
+    Args:
+        lighting: the sampled lights (camera frame).
+        head: the head part, with ``colors`` the linear albedo and its pose ``rotation``, ``translation``.
+        target: the linear value in ``(0, 1]`` the percentile is brought to.
+    """
+    if not 0.0 < target <= 1.0:
+        raise ValueError(f"target: expected a linear value in (0, 1], got {target}")
+    rotation = np.asarray(head.rotation, np.float64)
+    position = (head.vertices.astype(np.float64) + np.asarray(head.translation, np.float64)) @ rotation.T
+    normal = head.normals.astype(np.float64) @ rotation.T
+    facing = np.einsum("ki,ki->k", normal, position) < 0  # towards the camera centre
+    if not facing.any():
+        return lighting
+    normal, albedo = normal[facing], head.colors.astype(np.float64)[facing]
+    occlusion = np.ones(len(normal)) if head.occlusion is None else head.occlusion.astype(np.float64)[facing]
+    radiance = albedo * occlusion[:, None] * lighting.ambient
+    for direction, color in zip(lighting.directions, lighting.colors):
+        diffuse = np.maximum((normal @ direction + head.wrap) / (1.0 + head.wrap), 0.0)
+        radiance += albedo * (diffuse * (0.5 + 0.5 * occlusion))[:, None] * color
+    level = float(np.percentile(radiance.max(1), EXPOSURE_PERCENTILE))
+    if level <= target:
+        return lighting
+    scale = target / level
+    return Lighting(ambient=lighting.ambient * scale, directions=lighting.directions, colors=lighting.colors * scale)

@@ -24,6 +24,7 @@ import torch
 
 from facenormals.core.check import check_integer
 from facenormals.data.appearance import (
+    auto_exposure,
     sample_hair_color,
     sample_iris_color,
     sample_lighting,
@@ -50,7 +51,7 @@ __all__ = ["SynthBatch", "SynthConfig", "SyntheticHeadGenerator"]
 _STREAMS = ("shape", "pose", "camera", "skin", "hair", "light", "background", "extras")
 #: Version of what a (seed, index) draws: bumped whenever the same sample's bytes change (2: the
 #: framing solved by Newton's method, clutter colours clipped; 3: landmark visibility by ray casting,
-#: occluders aimed at visible landmarks), so that a dataset is never resumed
+#: occluders aimed at visible landmarks, lights dimmed by auto-exposure), so that a dataset is never resumed
 #: with samples of two generators (a manifest without it was written by version 1).
 GENERATOR_VERSION = 3
 #: Least depth slack in mm by which the head surface may lie in front of a landmark it does not hide.
@@ -85,6 +86,9 @@ class SynthConfig:
             (the principal point stays inside the image: below ``64 (S - 1) / S``).
         num_lights: range of the number of directional lights.
         temperature: range of the colour temperatures in kelvin.
+        exposure: range of the auto-exposure target (linear, in ``(0, 1]``): lights that would make
+            the 90th percentile of the camera-facing head's diffuse radiance brighter are dimmed to
+            a target drawn from it (:func:`~facenormals.data.appearance.auto_exposure`).
         hair_probability: probability of procedural hair.
         cap_probability: probability of a cap (otherwise bald when no hair).
         occluder_probability: probability of 1–2 occluding solids in front of the face.
@@ -107,6 +111,7 @@ class SynthConfig:
     principal_jitter: float = 6.0
     num_lights: tuple[int, int] = (1, 3)
     temperature: tuple[float, float] = (2500.0, 9000.0)
+    exposure: tuple[float, float] = (0.8, 1.0)
     hair_probability: float = 0.65
     cap_probability: float = 0.15
     occluder_probability: float = 0.25
@@ -142,7 +147,7 @@ class SynthConfig:
         if self.hair_probability + self.cap_probability > 1.0:
             raise ValueError("hair_probability + cap_probability: expected at most 1, got "
                              f"{self.hair_probability + self.cap_probability}")
-        for name in ("fill", "focal", "temperature", "num_lights"):
+        for name in ("fill", "focal", "temperature", "num_lights", "exposure"):
             pair = getattr(self, name)
             if (not isinstance(pair, (tuple, list)) or len(pair) != 2
                     or any(isinstance(v, (bool, np.bool_)) or not isinstance(v, Real) for v in pair)):
@@ -155,6 +160,8 @@ class SynthConfig:
             raise ValueError(f"focal: expected 0 < low <= high < inf, got {self.focal}")
         if not 1000.0 <= self.temperature[0] <= self.temperature[1] <= 40000.0:  # color_temperature's range
             raise ValueError(f"temperature: expected 1000 <= low <= high <= 40000 kelvin, got {self.temperature}")
+        if not 0.0 < self.exposure[0] <= self.exposure[1] <= 1.0:
+            raise ValueError(f"exposure: expected 0 < low <= high <= 1, got {self.exposure}")
         if any(not math.isfinite(v) or int(v) != v for v in self.num_lights):
             raise ValueError(f"num_lights: expected integers, got {self.num_lights}")
         if isinstance(self.background_folders, (str, Path)):
@@ -526,6 +533,7 @@ class SyntheticHeadGenerator:
             parts += occluders
             visible &= ~_blocked(landmarks, occluders, 0.0)
         lighting = sample_lighting(rng["light"], cfg.num_lights, cfg.temperature)
+        lighting = auto_exposure(lighting, head, rng["light"].uniform(*cfg.exposure))
         background = random_background(rng["background"], (cfg.image_size, cfg.image_size), self.photos,
                                        cfg.photo_probability)
         record = {"shape_coeffs": shape, "expression_coeffs": expression, "angles": angles, "rotation": rotation,
