@@ -72,6 +72,23 @@ def test_the_command_starts_without_torch_and_ctrl_c_while_it_loads_is_one_line(
                                          "resume where that applies)"] and captured.out == ""
 
 
+def test_help_and_version_do_not_import_torch():
+    """Regression: the parser read ``train``'s defaults through ``facenormals.training``, whose
+    package imported torch, so ``facenormals --help`` and ``--version`` took ~2.7 s. The training
+    package's names still load on first use."""
+    import subprocess
+    import sys
+
+    probe = ("import sys, contextlib, io, facenormals.cli as c\n"
+             "with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
+             "    c.main(['--help'])\n"
+             "loaded = 'torch' in sys.modules\n"
+             "import facenormals.training as t\n"
+             "print(loaded, t.train.__module__, t.TrainConfig.__module__, hasattr(t, 'no_such_name'))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "facenormals.training.loop", "facenormals.training.config", "False"]
+
+
 def test_models_list_and_show(capsys):
     assert main(["models", "list"]) == 0
     out = capsys.readouterr().out

@@ -205,7 +205,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     last = Path(args.out) / "last.pt"
     if last.is_file():  # a resume keeps the checkpoint's training settings unless the command gives them
         from facenormals.training import load_checkpoint
-        from facenormals.training.loop import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS
+        from facenormals.training.config import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS
 
         stored = load_checkpoint(last)["config"]
         values.update({key: stored[key] for key in (*ARCHITECTURE_SETTINGS, *RESUMED_SETTINGS)
@@ -410,8 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "write a box with a negative X as --box=-20,30,150,150")
     rec.set_defaults(func=_cmd_reconstruct)
 
-    from facenormals.training.config import TrainConfig
-    from facenormals.training.loop import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS
+    from facenormals.training.config import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS, TrainConfig
 
     resumed = ["--" + key.replace("_", "-") for key in (*ARCHITECTURE_SETTINGS, *RESUMED_SETTINGS)]
     train = sub.add_parser("train", formatter_class=_OptionsKeptWhole, help="train the normal + landmark network on synthetic data (resumes from OUT/last.pt)",

@@ -1,20 +1,30 @@
 """Training the normal + landmark network on synthetic data (CPU, CUDA, ``torchrun``/DDP), its metrics and weights.
 
-See ``docs/tutorials/train.md`` and ``docs/model_card.md``.
+See ``docs/tutorials/train.md`` and ``docs/model_card.md``. The names load on first use (PEP 562), so
+that ``facenormals.training.config`` (what ``facenormals --help`` reads) imports without torch.
 """
 
-from facenormals.training.checkpoint import export_weights, load_checkpoint, save_checkpoint
-from facenormals.training.config import TrainConfig
-from facenormals.training.loop import TrainSummary, train
-from facenormals.training.metrics import (
-    NetworkMetrics,
-    calibrate_landmark_threshold,
-    evaluate_network,
-    landmark_threshold,
-    normal_angles,
-)
+from __future__ import annotations
 
-__all__ = [
+import importlib
+from typing import TYPE_CHECKING, Any
+
+#: each name and the module it comes from
+_SOURCES = {
+    "NetworkMetrics": "metrics",
+    "TrainConfig": "config",
+    "TrainSummary": "loop",
+    "calibrate_landmark_threshold": "metrics",
+    "evaluate_network": "metrics",
+    "export_weights": "checkpoint",
+    "landmark_threshold": "metrics",
+    "load_checkpoint": "checkpoint",
+    "normal_angles": "metrics",
+    "save_checkpoint": "checkpoint",
+    "train": "loop",
+}
+
+__all__ = [  # the keys of _SOURCES, spelt out for linters
     "NetworkMetrics",
     "TrainConfig",
     "TrainSummary",
@@ -27,3 +37,28 @@ __all__ = [
     "save_checkpoint",
     "train",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _SOURCES:
+        raise AttributeError(f"module 'facenormals.training' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"facenormals.training.{_SOURCES[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_SOURCES})
+
+
+if TYPE_CHECKING:  # type checkers and editors do not run __getattr__
+    from facenormals.training.checkpoint import export_weights, load_checkpoint, save_checkpoint
+    from facenormals.training.config import TrainConfig
+    from facenormals.training.loop import TrainSummary, train
+    from facenormals.training.metrics import (
+        NetworkMetrics,
+        calibrate_landmark_threshold,
+        evaluate_network,
+        landmark_threshold,
+        normal_angles,
+    )

@@ -27,6 +27,16 @@ MAX_LR = 1e4
 #: its threshold below 0.3, and at 1e-9 every map is 0), so the network would learn blank or biased maps.
 MIN_SIGMA = 0.5
 
+#: Settings that shape the optimisation: a resume that changes one says so (``steps``, ``data``,
+#: ``seed`` and ``batch_size`` have their own notes or are meant to change), and ``facenormals train``
+#: takes them from the checkpoint unless its command line gives them.
+RESUMED_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
+                    "landmark_peak_weight", "foreground_weight", "sigma", "precision")
+#: The network's shape: a resume must keep it (another is refused), so ``facenormals train`` takes it
+#: from the checkpoint too unless its command line gives it.
+ARCHITECTURE_SETTINGS = ("base_channels", "depth")
+
+
 #: The device names training takes besides "auto": "cpu", "cuda" or "cuda:N".
 _DEVICE_NAME = re.compile(r"cpu|cuda(:[0-9]+)?")
 

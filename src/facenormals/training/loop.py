@@ -28,7 +28,7 @@ from facenormals.data.landmark_maps import landmark_maps
 from facenormals.nn.loss import _foreground_pixel_mask, normal_landmark_loss
 from facenormals.nn.unet import NormalLandmarkUNet, UNetOutput
 from facenormals.training.checkpoint import load_checkpoint, save_checkpoint
-from facenormals.training.config import TrainConfig
+from facenormals.training.config import ARCHITECTURE_SETTINGS, RESUMED_SETTINGS, TrainConfig
 from facenormals.training.distributed import init_distributed, resolve_precision
 from facenormals.training.metrics import NetworkMetrics, evaluate_network
 
@@ -152,16 +152,6 @@ def _truncate_csv(path: Path, step: int, fields: list[str]) -> None:
 def _last_logged_step(path: Path) -> int | None:
     rows = _read_rows(path)
     return _logged_step(path, rows[-1], len(rows) + 1) if rows else None
-
-
-#: Settings that shape the optimisation: a resume that changes one says so (``steps``, ``data``,
-#: ``seed`` and ``batch_size`` have their own notes or are meant to change), and ``facenormals train``
-#: takes them from the checkpoint unless its command line gives them.
-RESUMED_SETTINGS = ("lr", "warmup_steps", "min_lr_ratio", "weight_decay", "ema_decay", "landmark_weight",
-                    "landmark_peak_weight", "foreground_weight", "sigma", "precision")
-#: The network's shape: a resume must keep it (another is refused), so ``facenormals train`` takes it
-#: from the checkpoint too unless its command line gives it.
-ARCHITECTURE_SETTINGS = ("base_channels", "depth")
 
 
 def _check_holdout_is_not_training_data(dataset: Dataset, holdout: str) -> None:
