@@ -70,22 +70,29 @@ def test_auto_exposure_checks_the_target(target):
 
 
 def test_the_exposure_model_is_the_renderers_shading():
-    """The rendered colour where the sphere faces the camera and the light is what auto_exposure
-    assumes: albedo * (ambient * occlusion + diffuse * (1 + occlusion) / 2 * light), sRGB-encoded."""
+    """Every pixel of a rendered sphere has the colour auto_exposure assumes at the pixel's rendered
+    normal n: albedo * (ambient * occlusion + max((n . l + wrap) / (1 + wrap), 0) * (1 + occlusion) / 2
+    * light), sRGB-encoded; the light comes from the side, so the wrap term's soft falloff past the
+    terminator is in the picture."""
     try:
         renderer = TileRenderer((32, 32), grid=1, supersample=1)
     except HeadlessGLError as error:
         pytest.skip(f"no headless OpenGL: {error}")
+    albedo, occlusion, wrap = np.array([0.6, 0.5, 0.4]), 0.6, 0.25
+    direction = np.array([0.8, -0.2, -0.3]) / np.linalg.norm([0.8, -0.2, -0.3])
+    light = Lighting(np.array([0.2, 0.25, 0.3]), direction[None], np.array([[0.9, 0.8, 0.7]]))
     try:
         unit, faces, _ = sphere_mesh(np.linspace(0, np.pi, 48), 64)
         part = MeshPart(vertices=(unit * 50.0).astype(np.float32), normals=unit.astype(np.float32),
-                        colors=np.full((len(unit), 3), [0.6, 0.5, 0.4], np.float32), faces=faces, label=1,
-                        translation=np.array([0.0, 0.0, 300.0]), occlusion=np.full(len(unit), 0.6, np.float32),
-                        specular=0.0, wrap=0.25)
-        light = Lighting(np.array([0.2, 0.25, 0.3]), np.array([[0.0, 0.0, -1.0]]), np.array([[0.7, 0.6, 0.5]]))
+                        colors=np.tile(albedo, (len(unit), 1)).astype(np.float32), faces=faces, label=1,
+                        translation=np.array([0.0, 0.0, 300.0]), occlusion=np.full(len(unit), occlusion, np.float32),
+                        specular=0.0, wrap=wrap)
         out = renderer.render([TileScene([part], np.array([60.0, 15.5, 15.5]), light)], [0])
     finally:
         renderer.close()
-    expected = np.array([0.6, 0.5, 0.4]) * (light.ambient * 0.6 + 0.8 * light.colors[0])
-    np.testing.assert_allclose(out.color[0, 15:17, 15:17].reshape(-1, 3) / 255.0,
-                               np.tile(expected ** (1 / 2.2), (4, 1)), atol=2.5 / 255)
+    inside = out.coverage[0] == 255
+    normals = out.normals[0][inside].astype(np.float64)
+    diffuse = np.maximum((normals @ direction + wrap) / (1 + wrap), 0.0)
+    linear = albedo * (light.ambient * occlusion + (diffuse * (0.5 + 0.5 * occlusion))[:, None] * light.colors[0])
+    assert inside.sum() > 200 and (normals @ direction < -0.1).sum() > 20  # pixels past the terminator
+    np.testing.assert_allclose(out.color[0][inside] / 255.0, np.clip(linear, 0, 1) ** (1 / 2.2), atol=1.5 / 255)

@@ -71,6 +71,36 @@ def test_a_point_on_a_surface_is_not_blocked_by_its_own_triangles():
                                   [True, True, False])
 
 
+def test_a_point_on_a_random_triangle_is_not_blocked_by_it_at_zero_tolerance():
+    """Float rounding puts a point's own triangle a hair in front of it (s = 1 - 1e-16): that
+    crossing is the point itself, not an occluder."""
+    rng = np.random.default_rng(3)
+    triangles = rng.normal(size=(500, 3, 3)) * 20.0 + np.array([0.0, 0.0, 400.0])
+    weights = rng.dirichlet(np.ones(3), size=500)
+    weights[:100] = np.eye(3)[rng.integers(0, 3, size=100)]  # at a corner
+    for k, (triangle, w) in enumerate(zip(triangles, weights)):
+        point = (w @ triangle)[None]
+        assert not blocked_rays(point, triangle, np.array([[0, 1, 2]]), 0.0)[0]
+        if k >= 100:  # just behind an interior point (a corner's ray grazes the edges)
+            assert blocked_rays(point * 1.01, triangle, np.array([[0, 1, 2]]), 0.0)[0]
+
+
+def test_many_points_in_chunks_and_an_overflowing_triangle():
+    """More points than one query chunk, spread wide; a triangle whose projection overflows (far to
+    the side, just in front of the camera) has no usable box and is tested against every point."""
+    rng = np.random.default_rng(4)
+    vertices, faces = _soup(rng, 120, 30.0, 2.0)
+    flat = np.array([[1e10, 1e10, 1e-300], [2e10, 1e10, 1e-300], [1e10, 2e10, 1e-300]])
+    vertices, faces = np.concatenate([vertices, flat]), np.concatenate([faces, [[360, 361, 362]]])
+    points = np.column_stack([rng.uniform(-30, 30, size=(300, 2)), rng.uniform(1, 16, size=300)])
+    got = blocked_rays(points, vertices, faces, 0.5)
+    np.testing.assert_array_equal(got, _naive_blocked(points, vertices, faces, 0.5))
+    assert got.any() and not got.all()
+    # a huge one just in front of the camera, across every ray: it hides everything
+    cover = np.array([[-1e10, -1e10, 1e-300], [1e10, -1e10, 1e-300], [0.0, 1e10, 1e-300]])
+    assert blocked_rays(points, cover, np.array([[0, 1, 2]])).all()
+
+
 def test_a_ray_through_a_shared_edge_or_behind_the_camera():
     square = np.array([[-1.0, -1, 5], [1, -1, 5], [1, 1, 5], [-1, 1, 5]])
     faces = np.array([[0, 1, 2], [0, 2, 3]])
@@ -101,13 +131,17 @@ def test_blocked_rays_empty_inputs():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"points": np.zeros((2, 2))}, r"points: expected a numeric array of shape \(N, 3\), got shape \(2, 2\)"),
+        ({"points": np.zeros((2, 2))}, r"points: expected shape \(N, 3\), got shape \(2, 2\)"),
+        ({"points": np.array([[0j, 0, 10]])}, r"points: expected real numbers of shape \(N, 3\), got dtype complex128"),
+        ({"points": np.array([[True, False, True]])}, r"points: expected real numbers of shape \(N, 3\), got dtype bool"),
+        ({"points": np.array([[1.0, 0, 1e-320]])}, r"points: expected projections x / z, y / z within float64's range"),
         ({"points": np.array([[0.0, 0, np.nan]])}, "points: expected finite values"),
         ({"points": np.array([[0.0, 0, -1]])}, r"points: expected points in front of the camera \(z > 0\)"),
-        ({"vertices": np.zeros((3, 4))}, r"vertices: expected a numeric array of shape \(N, 3\), got shape \(3, 4\)"),
+        ({"vertices": np.zeros((3, 4))}, r"vertices: expected shape \(N, 3\), got shape \(3, 4\)"),
         ({"faces": np.array([[0, 1, 3]])}, r"faces: expected indices in \[0, 3\), got 0..3"),
         ({"faces": np.array([[0.0, 1, 2]])}, r"faces: expected an integer array of shape \(F, 3\)"),
-        ({"tolerance": -1.0}, "tolerance: expected finite lengths >= 0"),
+        ({"tolerance": -1.0}, "tolerance: expected finite lengths >= 0, got -1.0"),
+        ({"tolerance": True}, r"tolerance: expected real numbers of shape \(\) or \(1,\), got dtype bool"),
         ({"tolerance": np.zeros(3)}, r"tolerance: expected a number or shape \(1,\), got shape \(3,\)"),
     ],
 )

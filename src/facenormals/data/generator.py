@@ -606,9 +606,9 @@ def _blocked(points: np.ndarray, parts: list[MeshPart], tolerance: float | np.nd
         return np.zeros(len(points), dtype=bool)
     vertices, faces, offset = [], [], 0
     for part in parts:
-        posed = (part.vertices.astype(np.float64) + np.asarray(part.translation, np.float64)) @ np.asarray(part.rotation, np.float64).T
-        vertices.append(posed)
-        faces.append(part.faces + offset)
+        rotation, translation = np.asarray(part.rotation, np.float64), np.asarray(part.translation, np.float64)
+        vertices.append((part.vertices.astype(np.float64) + translation) @ rotation.T)
+        faces.append(part.faces.astype(np.int64) + offset)
         offset += len(part.vertices)
     return blocked_rays(points, np.concatenate(vertices), np.concatenate(faces), tolerance)
 

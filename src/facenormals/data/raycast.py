@@ -19,6 +19,11 @@ __all__ = ["blocked_rays"]
 
 #: Most grid cells along a side; a finer grid (tiny triangles, points far apart) gets coarser cells.
 _MAX_CELLS = 1024
+#: Points per query: the (candidate triangle, point) box test of a chunk is a dense matrix.
+_CHUNK = 64
+#: Crossings within this fraction of the distance to the point count as the point itself, however
+#: small the tolerance: float64 rounding puts a point's own triangle at s = 1 - 1e-16 or so.
+_SELF = 1e-9
 
 
 def blocked_rays(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
@@ -27,7 +32,9 @@ def blocked_rays(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
     A crossing counts when it lies more than ``tolerance`` (along the ray) in front of the point,
     so a point on a surface is not blocked by its own triangles, nor by folds of that surface
-    shallower than the tolerance. Triangles are double-sided; crossings behind the point never count.
+    shallower than the tolerance; crossings within a relative 1e-9 of the point's distance count as
+    the point itself even at zero tolerance. Triangles are double-sided; crossings behind the point
+    never count.
 
     Args:
         points: ``(P, 3)`` camera-frame points, in front of the camera (``z > 0``).
@@ -39,8 +46,8 @@ def blocked_rays(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
         ``(P,)`` bool, ``True`` where the point is hidden.
 
     Raises:
-        ValueError: on shapes, non-finite values, points with ``z <= 0``, out-of-range face indices
-            or a negative tolerance.
+        ValueError: on shapes or dtypes, non-finite values, points with ``z <= 0`` or whose
+            projection ``(x / z, y / z)`` overflows, out-of-range face indices or a negative tolerance.
 
     Example:
         >>> square = np.array([[-1.0, -1, 5], [1, -1, 5], [1, 1, 5], [-1, 1, 5]])
@@ -52,59 +59,84 @@ def blocked_rays(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     blocked = np.zeros(len(points), dtype=bool)
     if len(points) == 0 or len(faces) == 0:
         return blocked
-    z = vertices[:, 2]
-    front = z > 0
-    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
-    faces_front = front[a] & front[b] & front[c]
-    crossing = (front[a] | front[b] | front[c]) & ~faces_front  # straddles the camera plane: no projected box
-    front_index = np.flatnonzero(faces_front)
-    a, b, c = a[front_index], b[front_index], c[front_index]
-    depth = np.where(front, z, 1.0)
-    bounds = []
-    for image in (vertices[:, 0] / depth, vertices[:, 1] / depth):  # per axis: 3-wide reductions are slow
-        ia, ib, ic = image[a], image[b], image[c]
-        bounds.append((np.minimum(np.minimum(ia, ib), ic), np.maximum(np.maximum(ia, ib), ic)))
-    low = np.stack([bounds[0][0], bounds[1][0]], axis=1)
-    high = np.stack([bounds[0][1], bounds[1][1]], axis=1)
+    boxes = _TriangleBoxes(vertices, faces)
     target = points[:, :2] / points[:, 2:3]
-
-    extent = np.maximum(high[:, 0] - low[:, 0], high[:, 1] - low[:, 1])
-    cell = 2.0 * float(np.median(extent)) if len(extent) else 1.0
-    span = float((target.max(0) - target.min(0)).max())
-    cell = max(cell, span / (_MAX_CELLS - 4), 1e-12)
-    large = extent >= cell
-    # small boxes live in at most 2 x 2 cells, starting at the cell of their low corner
-    origin = target.min(0) - cell
-    size = int(np.floor(span / cell)) + 3
-    start = np.floor((low - origin) / cell).astype(np.int64)
-    wanted = np.zeros((size, size), dtype=bool)
-    cells = np.floor((target - origin) / cell).astype(np.int64)
-    for du in (0, 1):
-        for dv in (0, 1):
-            wanted[cells[:, 0] - du, cells[:, 1] - dv] = True
-    on_grid = ~large & (start[:, 0] >= 0) & (start[:, 1] >= 0) & (start[:, 0] < size) & (start[:, 1] < size)
-    near = np.zeros(len(front_index), dtype=bool)
-    near[on_grid] = wanted[start[on_grid, 0], start[on_grid, 1]]
-    candidates = np.flatnonzero(near | large)
-
-    # (point, triangle) pairs whose box holds the point's image, plus every triangle crossing z = 0
-    slack = 1e-9 * max(1.0, float(np.abs(target).max()))
-    inside = np.ones((len(candidates), len(points)), dtype=bool)
-    for k in (0, 1):  # per axis: 2-wide reductions are slow
-        inside &= (low[candidates, k, None] - slack <= target[:, k]) & (target[:, k] <= high[candidates, k, None] + slack)
-    pair_triangle, pair_point = np.nonzero(inside)
-    pair_triangle = front_index[candidates[pair_triangle]]
-    straddling = np.flatnonzero(crossing)
-    if len(straddling):
-        pair_point = np.concatenate([pair_point, np.repeat(np.arange(len(points)), len(straddling))])
-        pair_triangle = np.concatenate([pair_triangle, np.tile(straddling, len(points))])
-    if len(pair_point) == 0:
-        return blocked
-    hit_at = _segment_hits(points[pair_point], vertices[faces[pair_triangle]])
-    limit = 1.0 - tolerance[pair_point] / np.linalg.norm(points[pair_point], axis=1)
-    hit = hit_at < limit
-    blocked[pair_point[hit]] = True
+    # chunks of nearby points (sorted along x) keep each chunk's candidate triangles few
+    order = np.argsort(target[:, 0], kind="stable")
+    for chunk in np.array_split(order, -(-len(points) // _CHUNK)):
+        pair_triangle, pair_point = boxes.pairs(target[chunk])
+        if len(pair_point) == 0:
+            continue
+        pair_point = chunk[pair_point]
+        hit_at = _segment_hits(points[pair_point], vertices[faces[pair_triangle]])
+        limit = 1.0 - tolerance[pair_point] / np.linalg.norm(points[pair_point], axis=1) - _SELF
+        blocked[pair_point[hit_at < limit]] = True
     return blocked
+
+
+class _TriangleBoxes:
+    """The triangles' projected bounding boxes on the plane ``z = 1``, for :func:`blocked_rays`.
+
+    Triangles behind the camera are dropped (no segment from it to a point in front reaches them);
+    those straddling its plane, or whose projection overflows, have no usable box and are paired
+    with every point.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        z = vertices[:, 2]
+        front = z > 0
+        a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+        faces_front = front[a] & front[b] & front[c]
+        partly_front = (front[a] | front[b] | front[c]) & ~faces_front
+        index = np.flatnonzero(faces_front)
+        a, b, c = a[index], b[index], c[index]
+        depth = np.where(front, z, 1.0)
+        bounds = []
+        with np.errstate(over="ignore"):  # an overflow to inf is caught below
+            for image in (vertices[:, 0] / depth, vertices[:, 1] / depth):  # per axis: 3-wide reductions are slow
+                ia, ib, ic = image[a], image[b], image[c]
+                bounds.append((np.minimum(np.minimum(ia, ib), ic), np.maximum(np.maximum(ia, ib), ic)))
+        low = np.stack([bounds[0][0], bounds[1][0]], axis=1)
+        high = np.stack([bounds[0][1], bounds[1][1]], axis=1)
+        self.everywhere = np.flatnonzero(partly_front)
+        finite = np.logical_and.reduce([np.isfinite(bound) for pair in bounds for bound in pair])
+        if not finite.all():
+            self.everywhere = np.concatenate([self.everywhere, index[~finite]])
+            index, low, high = index[finite], low[finite], high[finite]
+        self.index, self.low, self.high = index, low, high
+        self.extent = np.maximum(self.high[:, 0] - self.low[:, 0], self.high[:, 1] - self.low[:, 1])
+        self.median = float(np.median(self.extent)) if len(self.extent) else 0.0
+
+    def pairs(self, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(triangle, point)`` index pairs whose box holds the point's projection ``target``
+        ``(P, 2)``, plus every triangle without a box with every point."""
+        span = float((target.max(0) - target.min(0)).max())
+        cell = max(2.0 * self.median, span / (_MAX_CELLS - 4), 1e-12)
+        large = self.extent >= cell
+        # boxes smaller than a cell lie in at most 2 x 2 cells, from the cell of their low corner
+        origin = target.min(0) - cell
+        size = int(np.floor(span / cell)) + 3
+        start = np.floor((self.low - origin) / cell).astype(np.int64)
+        wanted = np.zeros((size, size), dtype=bool)
+        cells = np.floor((target - origin) / cell).astype(np.int64)
+        for du in (0, 1):
+            for dv in (0, 1):
+                wanted[cells[:, 0] - du, cells[:, 1] - dv] = True
+        on_grid = ~large & (start[:, 0] >= 0) & (start[:, 1] >= 0) & (start[:, 0] < size) & (start[:, 1] < size)
+        near = np.zeros(len(self.index), dtype=bool)
+        near[on_grid] = wanted[start[on_grid, 0], start[on_grid, 1]]
+        candidates = np.flatnonzero(near | large)
+        slack = 1e-9 * max(1.0, float(np.abs(target).max()))
+        inside = np.ones((len(candidates), len(target)), dtype=bool)
+        for k in (0, 1):  # per axis: 2-wide reductions are slow
+            inside &= ((self.low[candidates, k, None] - slack <= target[:, k])
+                       & (target[:, k] <= self.high[candidates, k, None] + slack))
+        pair_triangle, pair_point = np.nonzero(inside)
+        pair_triangle = self.index[candidates[pair_triangle]]
+        if len(self.everywhere):
+            pair_point = np.concatenate([pair_point, np.repeat(np.arange(len(target)), len(self.everywhere))])
+            pair_triangle = np.concatenate([pair_triangle, np.tile(self.everywhere, len(target))])
+        return pair_triangle, pair_point
 
 
 def _segment_hits(ends: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -125,12 +157,20 @@ def _segment_hits(ends: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.where(hits, s, np.inf)
 
 
+def _real_array(value: object, name: str, shape: str) -> np.ndarray:
+    array = np.asarray(value)
+    if array.dtype == bool or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
+        raise ValueError(f"{name}: expected real numbers of shape {shape}, got dtype {array.dtype} "
+                         f"of shape {array.shape}")
+    return array
+
+
 def _check(points, vertices, faces, tolerance) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     arrays = {}
     for name, value in (("points", points), ("vertices", vertices)):
-        array = np.asarray(value)
-        if array.ndim != 2 or array.shape[1] != 3 or not np.issubdtype(array.dtype, np.number):
-            raise ValueError(f"{name}: expected a numeric array of shape (N, 3), got shape {array.shape}")
+        array = _real_array(value, name, "(N, 3)")
+        if array.ndim != 2 or array.shape[1] != 3:
+            raise ValueError(f"{name}: expected shape (N, 3), got shape {array.shape}")
         array = array.astype(np.float64)
         if not np.isfinite(array).all():
             raise ValueError(f"{name}: expected finite values, got NaN or infinity")
@@ -138,15 +178,20 @@ def _check(points, vertices, faces, tolerance) -> tuple[np.ndarray, np.ndarray, 
     points, vertices = arrays["points"], arrays["vertices"]
     if (points[:, 2] <= 0).any():
         raise ValueError(f"points: expected points in front of the camera (z > 0), got z = {points[:, 2].min():g}")
+    with np.errstate(over="ignore"):
+        if not np.isfinite(points[:, :2] / points[:, 2:3]).all():
+            raise ValueError("points: expected projections x / z, y / z within float64's range, got an overflow "
+                             f"(z down to {points[:, 2].min():g})")
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise ValueError(f"faces: expected an integer array of shape (F, 3), got {faces.dtype} of shape {faces.shape}")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise ValueError(f"faces: expected indices in [0, {len(vertices)}), got {faces.min()}..{faces.max()}")
-    tolerance = np.asarray(tolerance)
-    if tolerance.shape not in ((), (len(points),)) or not np.issubdtype(tolerance.dtype, np.number):
+    tolerance = _real_array(tolerance, "tolerance", f"() or ({len(points)},)")
+    if tolerance.shape not in ((), (len(points),)):
         raise ValueError(f"tolerance: expected a number or shape ({len(points)},), got shape {tolerance.shape}")
     tolerance = np.broadcast_to(tolerance.astype(np.float64), (len(points),))
     if not (np.isfinite(tolerance) & (tolerance >= 0)).all():
-        raise ValueError("tolerance: expected finite lengths >= 0")
+        bad = tolerance[~(np.isfinite(tolerance) & (tolerance >= 0))][0]
+        raise ValueError(f"tolerance: expected finite lengths >= 0, got {bad}")
     return points, vertices, faces.astype(np.int64), tolerance
