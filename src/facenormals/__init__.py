@@ -7,9 +7,9 @@ importing torch, so the command answers Ctrl-C with its one-line message from it
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from facenormals._lazy import lazy_names
 
 __version__ = "0.1.0"
 
@@ -87,21 +87,7 @@ __all__ = [  # the keys of _SOURCES, spelt out for linters
 ]
 
 
-def __getattr__(name: str) -> Any:
-    """A top-level op or a subpackage (``facenormals.fitting``), imported on first use."""
-    if name in _SOURCES:
-        value = getattr(importlib.import_module(f"facenormals.{_SOURCES[name]}"), name)
-    elif name.isidentifier() and not name.startswith("_") and importlib.util.find_spec(f"facenormals.{name}"):
-        value = importlib.import_module(f"facenormals.{name}")
-    else:
-        raise AttributeError(f"module 'facenormals' has no attribute {name!r}")
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_SOURCES})
-
+__getattr__, __dir__ = lazy_names(__name__, _SOURCES, globals(), subpackages=True)
 
 if TYPE_CHECKING:  # type checkers and editors do not run __getattr__
     from facenormals.core import check_finite, check_floating, check_shape

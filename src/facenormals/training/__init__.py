@@ -6,8 +6,9 @@ that ``facenormals.training.config`` (what ``facenormals --help`` reads) imports
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from facenormals._lazy import lazy_names
 
 #: each name and the module it comes from
 _SOURCES = {
@@ -39,17 +40,7 @@ __all__ = [  # the keys of _SOURCES, spelt out for linters
 ]
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _SOURCES:
-        raise AttributeError(f"module 'facenormals.training' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"facenormals.training.{_SOURCES[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_SOURCES})
-
+__getattr__, __dir__ = lazy_names(__name__, _SOURCES, globals())
 
 if TYPE_CHECKING:  # type checkers and editors do not run __getattr__
     from facenormals.training.checkpoint import export_weights, load_checkpoint, save_checkpoint
