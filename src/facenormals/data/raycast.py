@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facenormals.data.render import _check_finite, _check_shape
+
 __all__ = ["blocked_rays"]
 
 #: Most grid cells along a side; a finer grid (tiny triangles, points far apart) gets coarser cells.
@@ -157,25 +159,11 @@ def _segment_hits(ends: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.where(hits, s, np.inf)
 
 
-def _real_array(value: object, name: str, shape: str) -> np.ndarray:
-    array = np.asarray(value)
-    if array.dtype == bool or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
-        raise ValueError(f"{name}: expected real numbers of shape {shape}, got dtype {array.dtype} "
-                         f"of shape {array.shape}")
-    return array
-
-
 def _check(points, vertices, faces, tolerance) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    arrays = {}
     for name, value in (("points", points), ("vertices", vertices)):
-        array = _real_array(value, name, "(N, 3)")
-        if array.ndim != 2 or array.shape[1] != 3:
-            raise ValueError(f"{name}: expected shape (N, 3), got shape {array.shape}")
-        array = array.astype(np.float64)
-        if not np.isfinite(array).all():
-            raise ValueError(f"{name}: expected finite values, got NaN or infinity")
-        arrays[name] = array
-    points, vertices = arrays["points"], arrays["vertices"]
+        _check_shape(value, (None, 3), name)
+        _check_finite(value, name)
+    points, vertices = np.asarray(points, np.float64), np.asarray(vertices, np.float64)
     if (points[:, 2] <= 0).any():
         raise ValueError(f"points: expected points in front of the camera (z > 0), got z = {points[:, 2].min():g}")
     with np.errstate(over="ignore"):
@@ -187,11 +175,11 @@ def _check(points, vertices, faces, tolerance) -> tuple[np.ndarray, np.ndarray, 
         raise ValueError(f"faces: expected an integer array of shape (F, 3), got {faces.dtype} of shape {faces.shape}")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise ValueError(f"faces: expected indices in [0, {len(vertices)}), got {faces.min()}..{faces.max()}")
-    tolerance = _real_array(tolerance, "tolerance", f"() or ({len(points)},)")
+    _check_finite(tolerance, "tolerance")
+    tolerance = np.asarray(tolerance, np.float64)
     if tolerance.shape not in ((), (len(points),)):
         raise ValueError(f"tolerance: expected a number or shape ({len(points)},), got shape {tolerance.shape}")
-    tolerance = np.broadcast_to(tolerance.astype(np.float64), (len(points),))
-    if not (np.isfinite(tolerance) & (tolerance >= 0)).all():
-        bad = tolerance[~(np.isfinite(tolerance) & (tolerance >= 0))][0]
-        raise ValueError(f"tolerance: expected finite lengths >= 0, got {bad}")
+    tolerance = np.broadcast_to(tolerance, (len(points),))
+    if (tolerance < 0).any():
+        raise ValueError(f"tolerance: expected finite lengths >= 0, got {tolerance.min()}")
     return points, vertices, faces.astype(np.int64), tolerance
