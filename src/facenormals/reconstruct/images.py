@@ -148,22 +148,23 @@ def _decode(data: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
     """
     import cv2
 
+    flags = cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH  # 16-bit and float samples kept, for _eight_bits
     if not data.size:
         return None, []
     if data[: len(_JPEG_SIGNATURE)].tobytes() != _JPEG_SIGNATURE:
-        return cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH), []
+        return cv2.imdecode(data, flags), []
     data = _without_header_padding(data)
     if sys.stderr is None:  # Python started with file descriptor 2 closed: no warnings to read
-        return cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH), []
+        return cv2.imdecode(data, flags), []
     with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
         sys.stderr.flush()
         try:
             saved = os.dup(2)
         except OSError:  # no stderr to redirect (a daemon): decode without the check
-            return cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH), []
+            return cv2.imdecode(data, flags), []
         try:
             os.dup2(capture.fileno(), 2)
-            image = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
+            image = cv2.imdecode(data, flags)
         finally:
             os.dup2(saved, 2)
             os.close(saved)
